@@ -1,0 +1,42 @@
+"""Typed exceptions of codecsplat-warp.
+
+Every error a user can cause derives from :class:`CodecSplatError`, so callers can catch the whole
+family; each subclass also derives from the closest built-in (``ValueError``, ``MemoryError``) so code
+that already catches those keeps working.
+"""
+
+from __future__ import annotations
+
+
+class CodecSplatError(Exception):
+    """Base class of every error raised on purpose by this package."""
+
+
+class InputError(CodecSplatError, ValueError):
+    """A tensor argument has the wrong shape, dtype, device, layout or non-finite values.
+
+    The message names the argument (``"depth"``, ``"feat"``, ...) and what was expected.
+    """
+
+
+class DeviceMismatchError(InputError):
+    """Tensor arguments of one call live on different devices."""
+
+
+class CameraError(InputError):
+    """Camera parameters are invalid (non-finite, non-orthonormal rotation, focal <= 0, bad near/far).
+
+    The message names the offending view index.
+    """
+
+
+class DataError(CodecSplatError):
+    """A scene on disk cannot be read: missing file, count mismatch, bad pose, unsupported format."""
+
+
+class BitstreamError(CodecSplatError):
+    """A scene bitstream is truncated, corrupt, foreign or of a newer format version."""
+
+
+class RasterMemoryError(CodecSplatError, MemoryError):
+    """Rasterization would need more intersection buffer memory than the configured budget."""

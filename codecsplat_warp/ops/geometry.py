@@ -1,0 +1,267 @@
+"""Differentiable geometry ops over the Warp kernels: unprojection, reprojection averaging, plane sweeps.
+
+All ops take their device from the input tensors (CPU or CUDA, launched on torch's current stream), accept
+float32 or float64 (float16/bfloat16 inputs, e.g. under autocast, are computed in float32 and returned in
+float32), and follow :mod:`codecsplat_warp.cameras` conventions. Camera parameters are treated as constants
+(no gradient flows into ``Cameras``).
+"""
+
+from __future__ import annotations
+
+import torch
+import warp as wp
+
+from ..cameras import Cameras
+from ..device import check_finite, check_positive, check_tensor, common_device, to_warp, warp_scope
+from ..errors import DeviceMismatchError, InputError
+from ..kernels import reproject as reproject_kernels
+from ..kernels import unproject as unproject_kernels
+
+_LOW_PRECISION = (torch.float16, torch.bfloat16)
+_ACCEPTED = (torch.float32, torch.float64, torch.float16, torch.bfloat16)
+
+
+# --------------------------------------------------------------------------------------------------
+# Public ops
+def unproject(depth: torch.Tensor, cameras: Cameras) -> torch.Tensor:
+    """World-space points of every pixel centre at its depth.
+
+    Args:
+        depth: [V,H,W] camera-z depth per pixel, > 0 and finite. H, W may differ from the cameras' image size
+            (intrinsics are rescaled to the depth grid).
+        cameras: V cameras on the same device.
+
+    Returns:
+        points [V,H,W,3] in world coordinates, dtype of ``depth`` (float32 for half inputs). Differentiable
+        with respect to ``depth``.
+    """
+    depth = _float_input("depth", depth, ("V", "H", "W"), {"V": cameras.num_views})
+    check_positive("depth", depth)
+    cams = _cameras_for(cameras, depth, depth.shape[2], depth.shape[1])
+    return _Unproject.apply(depth, _intrinsics_vector(cams), cams.c2w.contiguous())
+
+
+def reproject_average(
+    feat: torch.Tensor,
+    depth: torch.Tensor,
+    cameras: Cameras,
+    neighbours: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Geometry-aligned multi-view feature A(F, D) of paper Eq. 3.
+
+    For each reference view r and pixel, back-project with ``depth[r]``, project into each source view
+    (``neighbours[r]``, default every s != r), bilinearly sample ``feat[s]`` where the point is in front of the
+    source camera and inside its image, and average the valid samples (zero where none is valid).
+
+    Args:
+        feat: [V,C,h,w] features; the grid may be smaller than the cameras' image (intrinsics are rescaled).
+        depth: [V,h,w] reference depths (camera z), > 0.
+        cameras: V cameras at image size, same device.
+        neighbours: optional [V,M] integer source-view indices per reference view.
+
+    Returns:
+        (avg [V,C,h,w] in feat's dtype, count [V,h,w] int32 number of valid samples). ``avg`` is
+        differentiable with respect to ``feat`` and ``depth`` (through the sampling coordinates).
+    """
+    dims = {"V": cameras.num_views}
+    feat = _float_input("feat", feat, ("V", "C", "h", "w"), dims)
+    depth = _float_input("depth", depth, ("V", "h", "w"), dims)
+    _check_pair(feat=feat, depth=depth)
+    check_finite("feat", feat)
+    check_positive("depth", depth)
+    cams = _cameras_for(cameras, feat, feat.shape[3], feat.shape[2])
+    neighbours = _neighbours(neighbours, cams.num_views, feat.device)
+    rel = _relative_transforms(cams, neighbours, feat.dtype)
+    return _ReprojectAverage.apply(feat, depth, _intrinsics_vector(cams), rel, neighbours)
+
+
+def plane_sweep_cost_volume(
+    feat: torch.Tensor,
+    candidates: torch.Tensor,
+    cameras: Cameras,
+    neighbours: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Plane-sweep correlation volume without materialising per-source warped copies.
+
+    ``cost[r, k, y, x]`` is the mean over valid source views s of ``<feat[r,:,y,x], Warp_s->r(feat[s]; depth =
+    candidates[r, k])> / sqrt(C)`` (validity and sampling as in :func:`reproject_average`; 0 where no source
+    is valid).
+
+    Args:
+        feat: [V,C,h,w] matching features (grid may be smaller than the image).
+        candidates: [V,D] or [D] constant depths of the sweep planes (camera z), > 0.
+        cameras: V cameras at image size.
+        neighbours: optional [V,M] source-view indices per reference view (default: every other view).
+
+    Returns:
+        cost [V,D,h,w], differentiable with respect to ``feat`` (reference and source features).
+    """
+    dims = {"V": cameras.num_views}
+    feat = _float_input("feat", feat, ("V", "C", "h", "w"), dims)
+    if isinstance(candidates, torch.Tensor) and candidates.dim() == 1:
+        candidates = candidates[None].expand(cameras.num_views, -1)
+    candidates = _float_input("candidates", candidates, ("V", "D"), dims)
+    _check_pair(feat=feat, candidates=candidates)
+    check_finite("feat", feat)
+    check_positive("candidates", candidates)
+    cams = _cameras_for(cameras, feat, feat.shape[3], feat.shape[2])
+    neighbours = _neighbours(neighbours, cams.num_views, feat.device)
+    rel = _relative_transforms(cams, neighbours, feat.dtype)
+    return _CostVolume.apply(feat, candidates, _intrinsics_vector(cams), rel, neighbours)
+
+
+def inverse_depth_candidates(cameras: Cameras, num: int) -> torch.Tensor:
+    """[V,num] depths uniform in inverse depth from each view's far (index 0) to its near (index num-1)."""
+    if num < 2:
+        raise InputError(f"num depth candidates must be >= 2, got {num}")
+    s = torch.linspace(0.0, 1.0, num, dtype=cameras.dtype, device=cameras.device)
+    inv_near, inv_far = 1.0 / cameras.near[:, None], 1.0 / cameras.far[:, None]
+    return 1.0 / (inv_far + s[None] * (inv_near - inv_far))
+
+
+def all_other_views(num_views: int, device: torch.device | str = "cpu") -> torch.Tensor:
+    """[V,V-1] int32: for each view r, every other view in increasing order."""
+    idx = torch.arange(num_views, device=device)
+    grid = idx[None].expand(num_views, -1)
+    keep = grid != idx[:, None]
+    return grid[keep].reshape(num_views, max(num_views - 1, 0)).to(torch.int32)
+
+
+def nearest_views(cameras: Cameras, k: int) -> torch.Tensor:
+    """[V,k] int32: each view's k nearest other views by camera-centre distance (ties by index)."""
+    V = cameras.num_views
+    if not 0 < k < V:
+        raise InputError(f"k must be in [1, {V - 1}] for {V} views, got {k}")
+    centers = cameras.centers.to(torch.float64)
+    dist = torch.cdist(centers, centers)
+    dist.fill_diagonal_(float("inf"))
+    return dist.topk(k, dim=1, largest=False).indices.to(torch.int32)
+
+
+# --------------------------------------------------------------------------------------------------
+# Autograd functions (tensors are already checked, contiguous and on one device)
+class _Unproject(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, depth, intrinsics, c2w):
+        V, H, W = depth.shape
+        points = torch.empty(V, H, W, 3, dtype=depth.dtype, device=depth.device)
+        with warp_scope(depth.device) as wdev:
+            _launch(unproject_kernels.unproject_forward, (V, H, W), [depth, intrinsics, c2w, points], wdev)
+        ctx.save_for_backward(intrinsics, c2w)
+        return points
+
+    @staticmethod
+    def backward(ctx, grad_points):
+        intrinsics, c2w = ctx.saved_tensors
+        grad_points = grad_points.contiguous()
+        V, H, W, _ = grad_points.shape
+        grad_depth = torch.empty(V, H, W, dtype=grad_points.dtype, device=grad_points.device)
+        with warp_scope(grad_points.device) as wdev:
+            _launch(unproject_kernels.unproject_backward, (V, H, W), [grad_points, intrinsics, c2w, grad_depth], wdev)
+        return grad_depth, None, None
+
+
+class _ReprojectAverage(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, feat, depth, intrinsics, rel, neighbours):
+        V, C, H, W = feat.shape
+        avg = torch.zeros_like(feat)
+        count = torch.empty(V, H, W, dtype=torch.int32, device=feat.device)
+        with warp_scope(feat.device) as wdev:
+            _launch(reproject_kernels.reproject_average_forward, (V, H, W),
+                    [feat, depth, intrinsics, rel, neighbours, avg, count], wdev)
+        ctx.save_for_backward(feat, depth, intrinsics, rel, neighbours, count)
+        ctx.mark_non_differentiable(count)
+        return avg, count
+
+    @staticmethod
+    def backward(ctx, grad_avg, _grad_count):
+        feat, depth, intrinsics, rel, neighbours, count = ctx.saved_tensors
+        grad_feat = torch.zeros_like(feat)
+        grad_depth = torch.empty_like(depth)
+        V, _, H, W = feat.shape
+        with warp_scope(feat.device) as wdev:
+            _launch(reproject_kernels.reproject_average_backward, (V, H, W),
+                    [grad_avg.contiguous(), feat, depth, intrinsics, rel, neighbours, count, grad_feat, grad_depth], wdev)
+        return grad_feat, grad_depth, None, None, None
+
+
+class _CostVolume(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, feat, candidates, intrinsics, rel, neighbours):
+        V, _, H, W = feat.shape
+        D = candidates.shape[1]
+        cost = torch.empty(V, D, H, W, dtype=feat.dtype, device=feat.device)
+        count = torch.empty(V, D, H, W, dtype=torch.int32, device=feat.device)
+        with warp_scope(feat.device) as wdev:
+            _launch(reproject_kernels.cost_volume_forward, (V, D, H, W),
+                    [feat, candidates, intrinsics, rel, neighbours, cost, count], wdev)
+        ctx.save_for_backward(feat, candidates, intrinsics, rel, neighbours, count)
+        return cost
+
+    @staticmethod
+    def backward(ctx, grad_cost):
+        feat, candidates, intrinsics, rel, neighbours, count = ctx.saved_tensors
+        grad_feat = torch.zeros_like(feat)
+        with warp_scope(feat.device) as wdev:
+            _launch(reproject_kernels.cost_volume_backward, tuple(count.shape),
+                    [grad_cost.contiguous(), feat, candidates, intrinsics, rel, neighbours, count, grad_feat], wdev)
+        return grad_feat, None, None, None, None
+
+
+# --------------------------------------------------------------------------------------------------
+# Helpers
+def _launch(kernel, dim, tensors, wdev) -> None:
+    if 0 in dim:
+        return
+    wp.launch(kernel, dim=dim, inputs=[to_warp(t) for t in tensors], device=wdev)
+
+
+def _float_input(name: str, t, shape, dims) -> torch.Tensor:
+    t = check_tensor(name, t, shape, _ACCEPTED, dims)
+    if t.numel() == 0:
+        raise InputError(f"{name} is empty (shape {tuple(t.shape)})")
+    return t.float() if t.dtype in _LOW_PRECISION else t
+
+
+def _check_pair(**tensors: torch.Tensor) -> None:
+    common_device(**tensors)
+    dtypes = {n: t.dtype for n, t in tensors.items()}
+    if len(set(dtypes.values())) > 1:
+        listing = ", ".join(f"{n}: {str(d).replace('torch.', '')}" for n, d in dtypes.items())
+        raise InputError(f"arguments must share one float dtype, got {listing}")
+
+
+def _cameras_for(cameras: Cameras, like: torch.Tensor, width: int, height: int) -> Cameras:
+    """Cameras rescaled to a width x height grid, in ``like``'s dtype; they must be on its device."""
+    if not isinstance(cameras, Cameras):
+        raise InputError(f"cameras must be a codecsplat_warp.cameras.Cameras, got {type(cameras).__name__}")
+    if cameras.device != like.device:
+        raise DeviceMismatchError(f"cameras are on {cameras.device} but the tensors are on {like.device}")
+    return cameras.to(dtype=like.dtype).rescaled(width, height)
+
+
+def _intrinsics_vector(cameras: Cameras) -> torch.Tensor:
+    """[V,4] (fx, fy, cx, cy) in pixels of the cameras' grid."""
+    K = cameras.K
+    return torch.stack([K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]], dim=-1).contiguous()
+
+
+def _neighbours(neighbours, num_views: int, device: torch.device) -> torch.Tensor:
+    if neighbours is None:
+        return all_other_views(num_views, device)
+    if not isinstance(neighbours, torch.Tensor) or neighbours.dim() != 2 or neighbours.shape[0] != num_views:
+        got = tuple(neighbours.shape) if isinstance(neighbours, torch.Tensor) else type(neighbours).__name__
+        raise InputError(f"neighbours must be a [V={num_views},M] integer tensor, got {got}")
+    if neighbours.dtype.is_floating_point or neighbours.dtype == torch.bool:
+        raise InputError(f"neighbours must hold integer view indices, got dtype {neighbours.dtype}")
+    if neighbours.device != device:
+        raise DeviceMismatchError(f"neighbours are on {neighbours.device} but feat is on {device}")
+    if neighbours.numel() and (int(neighbours.min()) < 0 or int(neighbours.max()) >= num_views):
+        raise InputError(f"neighbours must index views in [0, {num_views - 1}]")
+    return neighbours.to(torch.int32).contiguous()
+
+
+def _relative_transforms(cameras: Cameras, neighbours: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """[V,M,4,4] reference-to-source transforms, composed in float64 then cast to ``dtype``."""
+    return cameras.to(dtype=torch.float64).relative_transforms(neighbours).to(dtype).contiguous()

@@ -1,0 +1,37 @@
+"""Shared pytest setup: Warp kernel cache in the ignored build dir, device parametrisation, data path."""
+
+from __future__ import annotations
+
+import os
+import pathlib
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+os.environ.setdefault("WARP_CACHE_PATH", str(ROOT / "build" / "warp-cache"))
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+CUDA = torch.cuda.is_available()
+
+DEVICES = [
+    pytest.param("cpu", id="cpu"),
+    pytest.param("cuda", id="cuda", marks=[pytest.mark.cuda, pytest.mark.skipif(not CUDA, reason="no CUDA GPU visible to torch")]),
+]
+"""Parametrise a test over every device: ``@pytest.mark.parametrize("device", DEVICES)``."""
+
+
+@pytest.fixture(scope="session")
+def data_root() -> pathlib.Path:
+    """Root of the real scenes (``CODECSPLAT_DATA``); skips the test with the reason when unset or missing."""
+    path = os.environ.get("CODECSPLAT_DATA")
+    if not path:
+        pytest.skip("CODECSPLAT_DATA is not set: real-scene tests need ../shared/data/scenes (set by .ci/run)")
+    root = pathlib.Path(path)
+    if not root.is_dir():
+        pytest.skip(f"CODECSPLAT_DATA={path} is not a directory")
+    return root
+
+
+@pytest.fixture(autouse=True)
+def _seed() -> None:
+    torch.manual_seed(0)

@@ -1,0 +1,48 @@
+"""Small synthetic camera rigs for kernel tests (OpenCV axes, looking roughly along +z at a scene 2-4 units away)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from codecsplat_warp.cameras import Cameras, intrinsics_matrix
+
+
+def rotation(yaw: float, pitch: float, roll: float) -> torch.Tensor:
+    """[3,3] float64 rotation from yaw (about y), pitch (about x) and roll (about z), radians."""
+    cy, sy, cp, sp, cr, sr = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch), math.cos(roll), math.sin(roll)
+    Ry = torch.tensor([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]], dtype=torch.float64)
+    Rx = torch.tensor([[1, 0, 0], [0, cp, -sp], [0, sp, cp]], dtype=torch.float64)
+    Rz = torch.tensor([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]], dtype=torch.float64)
+    return Ry @ Rx @ Rz
+
+
+def make_rig(num_views: int, width: int, height: int, dtype=torch.float64, device="cpu", seed: int = 0,
+             baseline: float = 0.25, offset=(0.0, 0.0, 0.0)) -> Cameras:
+    """V cameras on a short horizontal arc, slightly rotated towards the scene centre, random principal points."""
+    g = torch.Generator().manual_seed(seed)
+    c2w = torch.eye(4, dtype=torch.float64).repeat(num_views, 1, 1)
+    for v in range(num_views):
+        x = (v - (num_views - 1) / 2) * baseline
+        jitter = (torch.rand(3, generator=g, dtype=torch.float64) - 0.5) * 0.1
+        c2w[v, :3, :3] = rotation(-0.15 * x + float(jitter[0]), float(jitter[1]), float(jitter[2]))
+        c2w[v, :3, 3] = torch.tensor([x, 0.05 * v, 0.0], dtype=torch.float64) + torch.tensor(offset, dtype=torch.float64)
+    f = 0.9 * max(width, height)
+    fx = torch.full((num_views,), f, dtype=torch.float64) * (1 + 0.05 * torch.rand(num_views, generator=g, dtype=torch.float64))
+    fy = fx * (1 + 0.01 * torch.rand(num_views, generator=g, dtype=torch.float64))
+    cx = width / 2 + (torch.rand(num_views, generator=g, dtype=torch.float64) - 0.5)
+    cy = height / 2 + (torch.rand(num_views, generator=g, dtype=torch.float64) - 0.5)
+    near = torch.full((num_views,), 0.5, dtype=torch.float64)
+    far = torch.full((num_views,), 20.0, dtype=torch.float64)
+    cams = Cameras.from_c2w(intrinsics_matrix(fx, fy, cx, cy), c2w, near, far, width, height)
+    return cams.to(device=device, dtype=dtype)
+
+
+def smooth_depth(num_views: int, height: int, width: int, dtype=torch.float64, device="cpu", seed: int = 1,
+                 lo: float = 2.0, hi: float = 4.0) -> torch.Tensor:
+    """[V,H,W] smooth random depth in [lo, hi] (bilinearly upsampled noise)."""
+    g = torch.Generator().manual_seed(seed)
+    coarse = torch.rand(num_views, 1, 3, 3, generator=g, dtype=torch.float64)
+    fine = torch.nn.functional.interpolate(coarse, size=(height, width), mode="bilinear", align_corners=True)[:, 0]
+    return (lo + (hi - lo) * fine).to(device=device, dtype=dtype)
