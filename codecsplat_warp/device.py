@@ -39,6 +39,9 @@ _TORCH_TO_WARP_DTYPE = {
     torch.uint8: wp.uint8,
 }
 
+if os.environ.get("CODECSPLAT_WARP_VERBOSE", "0") == "0":  # Warp logs every module load otherwise
+    wp.config.log_level = wp.LOG_WARNING
+
 _init_lock = threading.Lock()
 _initialised = False
 _validate = os.environ.get("CODECSPLAT_VALIDATE", "1") != "0"
@@ -51,7 +54,6 @@ def init_warp() -> None:
         return
     with _init_lock:
         if not _initialised:
-            wp.config.quiet = True
             wp.init()
             _initialised = True
 

@@ -23,6 +23,9 @@ from typing import Any
 
 import warp as wp
 
+# Backward passes are hand-written kernels: skip Warp's adjoint code generation (compiles ~2.6x faster).
+wp.set_module_options({"enable_backward": False})
+
 from .unproject import pixel_ray
 
 

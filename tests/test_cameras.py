@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from rigs import make_rig, rotation
+from codecsplat_warp.synthetic import make_rig, rotation
 
 from codecsplat_warp.cameras import Cameras, intrinsics_matrix, rigid_inverse
 from codecsplat_warp.device import check_tensor, common_device

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import DEVICES
-from rigs import make_rig, smooth_depth
+from codecsplat_warp.synthetic import make_rig, smooth_depth
 
 from codecsplat_warp.cameras import Cameras
 from codecsplat_warp.errors import CameraError, DeviceMismatchError, InputError

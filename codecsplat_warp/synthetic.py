@@ -1,4 +1,7 @@
-"""Small synthetic camera rigs for kernel tests (OpenCV axes, looking roughly along +z at a scene 2-4 units away)."""
+"""Synthetic camera rigs and depth maps for tests, ``selfcheck`` and benchmarks.
+
+Rigs use OpenCV axes and look roughly along +z at a scene 2-4 units away (see :mod:`codecsplat_warp.cameras`).
+"""
 
 from __future__ import annotations
 
@@ -6,7 +9,7 @@ import math
 
 import torch
 
-from codecsplat_warp.cameras import Cameras, intrinsics_matrix
+from .cameras import Cameras, intrinsics_matrix
 
 
 def rotation(yaw: float, pitch: float, roll: float) -> torch.Tensor:

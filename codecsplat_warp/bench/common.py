@@ -1,0 +1,115 @@
+"""Timing, memory and table helpers shared by the benchmarks (``codecsplat bench ...``).
+
+Timing follows the usual GPU method: warm-up runs first (Warp module load, allocator warm-up), then the
+median of repeated runs; on CUDA each run is bracketed by CUDA events on the current stream, on the CPU by
+``time.perf_counter``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import resource
+import statistics
+import time
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import torch
+
+
+@dataclass
+class Timing:
+    """Median and spread of repeated runs, in milliseconds."""
+
+    median_ms: float
+    min_ms: float
+    max_ms: float
+    reps: int
+
+
+def time_call(fn: Callable[[], object], device: torch.device, reps: int, warmup: int = 2) -> Timing:
+    """Run ``fn`` ``warmup`` times untimed, then ``reps`` timed times; return the median in ms."""
+    for _ in range(warmup):
+        fn()
+    samples = []
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+        for _ in range(reps):
+            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            start.record()
+            fn()
+            end.record()
+            end.synchronize()
+            samples.append(start.elapsed_time(end))
+    else:
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            fn()
+            samples.append((time.perf_counter() - t0) * 1e3)
+    return Timing(statistics.median(samples), min(samples), max(samples), reps)
+
+
+def cuda_peak_bytes(fn: Callable[[], object], device: torch.device) -> int:
+    """Peak CUDA memory allocated by torch's allocator while ``fn`` runs, above what was live before."""
+    torch.cuda.synchronize(device)
+    base = torch.cuda.memory_allocated(device)
+    torch.cuda.reset_peak_memory_stats(device)
+    fn()
+    torch.cuda.synchronize(device)
+    return torch.cuda.max_memory_allocated(device) - base
+
+
+def rss_peak_growth_bytes(fn: Callable[[], object]) -> int:
+    """Growth of the process's peak resident set while ``fn`` runs (CPU memory; 0 if the peak was already higher).
+
+    Only meaningful in a process whose earlier peak is below what ``fn`` needs: the benchmarks call it first
+    thing in a fresh child process.
+    """
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    fn()
+    after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return (after - before) * 1024  # Linux reports KiB
+
+
+def machine_name(device: torch.device) -> str:
+    """Human-readable name of the machine a benchmark ran on."""
+    if device.type == "cuda":
+        props = torch.cuda.get_device_properties(device)
+        return f"{props.name} ({props.total_memory / 2**30:.0f} GiB), torch {torch.__version__}"
+    cpu = _cpu_model() or platform.processor() or platform.machine()
+    return f"{cpu}, {os.cpu_count()} logical cores, torch {torch.__version__}"
+
+
+def _cpu_model() -> str | None:
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        return None
+    return None
+
+
+def format_table(rows: Sequence[dict], columns: Sequence[tuple[str, str, str]]) -> str:
+    """Markdown table; ``columns`` are (key, header, format spec) triples; missing values print as ``n/a``."""
+    header = "| " + " | ".join(h for _, h, _ in columns) + " |"
+    rule = "|" + "|".join("---" for _ in columns) + "|"
+    lines = [header, rule]
+    for row in rows:
+        cells = []
+        for key, _, spec in columns:
+            value = row.get(key)
+            cells.append("n/a" if value is None else format(value, spec))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def write_json(path: str | os.PathLike, payload: dict) -> None:
+    """Write ``payload`` as indented JSON, atomically (temp file then rename)."""
+    tmp = f"{path}.tmp"
+    with open(tmp, "w") as fh:
+        json.dump(payload, fh, indent=2)
+    os.replace(tmp, path)

@@ -1,0 +1,154 @@
+"""``codecsplat bench geometry``: reproject_average (Warp) against the torch ``grid_sample`` reference.
+
+Shapes mirror the model's use: RE10K (2 views, C=64, 64x64 and 256x256 grids of a 256x256 image) and DL3DV
+(8 views, C=64, 64x112 and 256x448 grids of a 256x448 image), float32. For each shape and implementation:
+median ms of forward and forward+backward, peak memory of forward+backward, and the error of the float32
+result against a float64 evaluation of the same op (max abs of the output; relative L2 of the gradients).
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing
+from dataclasses import dataclass
+
+import torch
+
+from ..ops.geometry import all_other_views, reproject_average
+from ..reference.geometry import reproject_average_reference
+from ..synthetic import make_rig, smooth_depth
+from .common import cuda_peak_bytes, format_table, machine_name, rss_peak_growth_bytes, time_call
+
+
+@dataclass(frozen=True)
+class Shape:
+    name: str
+    views: int
+    channels: int
+    grid_h: int
+    grid_w: int
+    image_h: int
+    image_w: int
+
+
+SHAPES = {
+    "re10k-64": Shape("re10k-64", 2, 64, 64, 64, 256, 256),
+    "re10k-256": Shape("re10k-256", 2, 64, 256, 256, 256, 256),
+    "dl3dv-64": Shape("dl3dv-64", 8, 64, 64, 112, 256, 448),
+    "dl3dv-256": Shape("dl3dv-256", 8, 64, 256, 448, 256, 448),
+}
+
+IMPLEMENTATIONS = ("warp", "torch")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--shapes", default=",".join(SHAPES), help=f"comma list of {', '.join(SHAPES)}")
+    parser.add_argument("--reps", type=int, default=None, help="timed repetitions (default: 30 on CUDA, 3 on CPU)")
+
+
+def run(args: argparse.Namespace) -> dict:
+    device = torch.device(args.device)
+    reps = args.reps or (30 if device.type == "cuda" else 3)
+    shapes = [SHAPES[s] for s in args.shapes.split(",")]
+    rows = []
+    for shape in shapes:
+        for impl in IMPLEMENTATIONS:
+            rows.append(measure(shape, impl, device, reps))
+            _print_row(rows[-1])
+    for shape in shapes:
+        warp_row, torch_row = (next(r for r in rows if r["shape"] == shape.name and r["impl"] == i) for i in IMPLEMENTATIONS)
+        warp_row["speedup_fwd_bwd"] = torch_row["fwd_bwd_ms"] / warp_row["fwd_bwd_ms"]
+        warp_row["memory_ratio"] = (warp_row["peak_mib"] / torch_row["peak_mib"]) if torch_row["peak_mib"] else None
+    table = format_table(rows, COLUMNS)
+    print(f"\nreproject_average, float32, {machine_name(device)}\n{table}")
+    return {"benchmark": "geometry", "device": str(device), "machine": machine_name(device), "rows": rows, "table": table}
+
+
+COLUMNS = [
+    ("shape", "shape", "s"),
+    ("impl", "impl", "s"),
+    ("fwd_ms", "fwd ms", ".3f"),
+    ("fwd_bwd_ms", "fwd+bwd ms", ".3f"),
+    ("peak_mib", "peak MiB", ".1f"),
+    ("max_err_fwd", "max err fwd", ".2e"),
+    ("rel_err_grad", "rel err grad", ".2e"),
+    ("speedup_fwd_bwd", "speed-up fwd+bwd", ".2f"),
+    ("memory_ratio", "memory ratio", ".3f"),
+]
+
+
+def _print_row(row: dict) -> None:
+    print(f"  {row['shape']:<10} {row['impl']:<6} fwd {row['fwd_ms']:9.3f} ms  fwd+bwd {row['fwd_bwd_ms']:9.3f} ms  "
+          f"peak {row['peak_mib']:8.1f} MiB  err {row['max_err_fwd']:.2e}", flush=True)
+
+
+def make_inputs(shape: Shape, device: torch.device, dtype=torch.float32):
+    """Cameras at image size, features, depths and fixed output weights for one shape."""
+    cams = make_rig(shape.views, shape.image_w, shape.image_h, dtype=dtype, device=device)
+    g = torch.Generator().manual_seed(3)
+    feat = torch.randn(shape.views, shape.channels, shape.grid_h, shape.grid_w, generator=g, dtype=torch.float64)
+    weights = torch.randn(feat.shape, generator=g, dtype=torch.float64)
+    depth = smooth_depth(shape.views, shape.grid_h, shape.grid_w)
+    return cams, feat.to(device, dtype), depth.to(device, dtype), weights.to(device, dtype)
+
+
+def _op(impl: str):
+    if impl == "warp":
+        return lambda f, d, cams: reproject_average(f, d, cams)[0]
+    return lambda f, d, cams: reproject_average_reference(f, d, cams, all_other_views(cams.num_views, f.device))[0]
+
+
+def _forward_backward(impl: str, cams, feat, depth, weights):
+    feat = feat.detach().requires_grad_()
+    depth = depth.detach().requires_grad_()
+    out = _op(impl)(feat, depth, cams)
+    grads = torch.autograd.grad((out * weights).sum(), (feat, depth))
+    return out.detach(), grads
+
+
+def measure(shape: Shape, impl: str, device: torch.device, reps: int) -> dict:
+    """Timings, peak memory and float32-vs-float64 errors for one shape and implementation."""
+    cams, feat, depth, weights = make_inputs(shape, device)
+    op = _op(impl)
+    with torch.no_grad():
+        fwd = time_call(lambda: op(feat, depth, cams), device, reps)
+    fwd_bwd = time_call(lambda: _forward_backward(impl, cams, feat, depth, weights), device, reps)
+    peak = _peak_bytes(shape, impl, device)
+    out, grads = _forward_backward(impl, cams, feat, depth, weights)
+    ref_out, ref_grads = _float64_reference(shape, device)
+    grad_err = max(float((g.double() - r).norm() / r.norm().clamp_min(1e-30)) for g, r in zip(grads, ref_grads))
+    return {
+        "shape": shape.name, "impl": impl, "views": shape.views, "channels": shape.channels,
+        "grid": f"{shape.grid_h}x{shape.grid_w}", "fwd_ms": fwd.median_ms, "fwd_bwd_ms": fwd_bwd.median_ms,
+        "fwd_spread_ms": [fwd.min_ms, fwd.max_ms], "fwd_bwd_spread_ms": [fwd_bwd.min_ms, fwd_bwd.max_ms], "reps": reps,
+        "peak_mib": peak / 2**20, "max_err_fwd": float((out.double() - ref_out).abs().max()), "rel_err_grad": grad_err,
+    }
+
+
+_reference_cache: dict = {}
+
+
+def _float64_reference(shape: Shape, device: torch.device):
+    """Output and gradients in float64 (Warp float64 kernels; tests tie them to the torch reference)."""
+    key = (shape, str(device))
+    if key not in _reference_cache:
+        cams, feat, depth, weights = make_inputs(shape, device, torch.float64)
+        _reference_cache.clear()
+        _reference_cache[key] = _forward_backward("warp", cams, feat, depth, weights)
+    return _reference_cache[key]
+
+
+def _peak_bytes(shape: Shape, impl: str, device: torch.device) -> int:
+    if device.type == "cuda":
+        cams, feat, depth, weights = make_inputs(shape, device)
+        return cuda_peak_bytes(lambda: _forward_backward(impl, cams, feat, depth, weights), device)
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        return pool.apply(_cpu_peak_child, (shape, impl))
+
+
+def _cpu_peak_child(shape: Shape, impl: str) -> int:
+    """In a fresh process: warm the op on a tiny input, then measure the peak RSS growth of one fwd+bwd."""
+    tiny = Shape("tiny", shape.views, 2, 4, 4, 16, 16)
+    _forward_backward(impl, *make_inputs(tiny, torch.device("cpu")))
+    cams, feat, depth, weights = make_inputs(shape, torch.device("cpu"))
+    return rss_peak_growth_bytes(lambda: _forward_backward(impl, cams, feat, depth, weights))
