@@ -19,6 +19,7 @@ EXIT_OK, EXIT_USER, EXIT_INTERNAL = 0, 1, 2
 
 BENCHMARKS = {
     "geometry": "codecsplat_warp.bench.geometry",
+    "raster": "codecsplat_warp.bench.raster",
 }
 """``codecsplat bench NAME`` -> module with ``add_arguments(parser)`` and ``run(args) -> dict``."""
 

@@ -14,8 +14,10 @@ import torch
 
 from .bench.common import format_table, time_call
 from .ops import geometry
+from .ops.raster import rasterize
 from .reference import geometry as reference
-from .synthetic import make_rig, smooth_depth
+from .reference.raster import rasterize_dense
+from .synthetic import make_rig, random_gaussians, smooth_depth
 
 TOLERANCE = {torch.float32: 1e-4, torch.float64: 1e-9}
 """Largest accepted relative error per dtype."""
@@ -47,6 +49,10 @@ def _cost_volume_inputs():
     return torch.randn(3, 8, 12, 16, dtype=torch.float64), geometry.inverse_depth_candidates(cams, 6), cams
 
 
+def _raster_inputs(sh_degree=None):
+    return (*random_gaussians(40, width=24, height=20, cameras=2, sh_degree=sh_degree), 24, 20)
+
+
 CHECKS: list[KernelCheck] = [
     KernelCheck("unproject", geometry.unproject, reference.unproject_reference, _unproject_inputs, 1),
     KernelCheck(
@@ -63,6 +69,14 @@ CHECKS: list[KernelCheck] = [
         _cost_volume_inputs,
         1,
     ),
+    KernelCheck("rasterize (RGB)", lambda *a: rasterize(*a)[0], lambda *a: rasterize_dense(*a)[0], _raster_inputs, 5),
+    KernelCheck(
+        "rasterize (SH deg 3, depth)",
+        lambda *a: rasterize(*a)[1],
+        lambda *a: rasterize_dense(*a)[1],
+        lambda: _raster_inputs(sh_degree=3),
+        5,
+    ),
 ]
 
 
@@ -73,12 +87,13 @@ def _cast(inputs: Sequence, device: torch.device, dtype: torch.dtype) -> list:
 def _forward_backward(fn, inputs: Sequence, num_grad: int, weights: torch.Tensor):
     leaves = [x.detach().requires_grad_() for x in inputs[:num_grad]]
     out = fn(*leaves, *inputs[num_grad:])
-    grads = torch.autograd.grad((out * weights.to(out)).sum(), leaves)
-    return out.detach(), grads
+    grads = torch.autograd.grad((out * weights.to(out)).sum(), leaves, allow_unused=True)
+    return out.detach(), [torch.zeros_like(x) if g is None else g for x, g in zip(leaves, grads)]
 
 
 def _relative_error(got: torch.Tensor, ref: torch.Tensor) -> float:
-    return float((got.detach().cpu().double() - ref).abs().max() / ref.abs().max().clamp_min(1e-30))
+    """max |got - ref| / max |ref| (absolute error when the reference is all zeros)."""
+    return float((got.detach().cpu().double() - ref).abs().max() / ref.abs().max().clamp_min(1.0 if not ref.any() else 1e-30))
 
 
 def run_check(check: KernelCheck, device: torch.device, dtype: torch.dtype, reps: int = 5) -> dict:

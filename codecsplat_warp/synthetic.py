@@ -49,3 +49,30 @@ def smooth_depth(num_views: int, height: int, width: int, dtype=torch.float64, d
     coarse = torch.rand(num_views, 1, 3, 3, generator=g, dtype=torch.float64)
     fine = torch.nn.functional.interpolate(coarse, size=(height, width), mode="bilinear", align_corners=True)[:, 0]
     return (lo + (hi - lo) * fine).to(device=device, dtype=dtype)
+
+
+def random_gaussians(n, width=16, height=16, cameras=1, sh_degree=None, dtype=torch.float64, device="cpu", seed=0):
+    """Random Gaussians 2-4 units in front of ``cameras`` pinhole cameras slightly apart along x.
+
+    Returns [means [N,3], quats [N,4], scales [N,3], opacities [N], colors [N,3] or SH [N,(d+1)^2,3],
+    viewmats [B,4,4] world-to-camera, Ks [B,3,3] pixels], in the argument order of ``rasterize``.
+    """
+    g = torch.Generator().manual_seed(seed)
+
+    def rand(*shape):
+        return torch.rand(*shape, generator=g, dtype=dtype)
+
+    means = (rand(n, 3) - 0.5) * torch.tensor([1.6, 1.2, 2.0], dtype=dtype) + torch.tensor([0, 0, 3.0], dtype=dtype)
+    quats = rand(n, 4) - 0.5
+    scales = rand(n, 3) * 0.15 + 0.03
+    opacities = rand(n) * 0.9 + 0.05
+    if sh_degree is None:
+        colors = rand(n, 3)
+    else:
+        colors = (rand(n, (sh_degree + 1) ** 2, 3) - 0.5) * 0.6
+    viewmats = torch.eye(4, dtype=dtype).repeat(cameras, 1, 1)
+    viewmats[:, 0, 3] = torch.linspace(0.0, 0.3, cameras, dtype=dtype)
+    f = 1.1 * max(width, height)
+    Ks = torch.tensor([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], dtype=dtype).repeat(cameras, 1, 1)
+    tensors = [means, quats, scales, opacities, colors, viewmats, Ks]
+    return [t.to(device) for t in tensors]

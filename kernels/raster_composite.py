@@ -1,0 +1,269 @@
+"""Per-tile front-to-back alpha compositing of projected Gaussians and its hand-written backward.
+
+Both kernels are launched with :func:`warp.launch_tiled`. Each thread owns exactly one pixel; a tile of
+``tile_size^2`` pixels is covered by ``blocks_per_tile = tile_size^2 / block_dim`` blocks (1 on CUDA with
+``block_dim = tile_size^2``; ``tile_size^2`` on the CPU, whose blocks have one lane). Every block stages
+``batch`` projected rows of its tile's depth-sorted list in shared memory (``tile_load`` of the ids, then
+``tile_load_indexed`` of the rows) and each thread walks the staged rows for its pixel. ``batch`` is a
+compile-time constant of :func:`composite_kernels` (``tile_size^2`` on CUDA, small on the CPU where every
+one-pixel block stages its own copy).
+
+Constants are gsplat's: ``alpha = min(0.999, opacity * exp(-power))``; rows with ``power < 0`` or
+``alpha < 1/255`` are skipped; a pixel stops (exclusively) at the first row whose
+``T * (1 - alpha) <= 1e-4``. The forward saves the final transmittance ``T`` and the sorted index of the
+last contributing row; the backward walks that pixel's rows back to front, rebuilding ``T`` by division
+(Warp's automatic adjoint cannot differentiate this early-exit loop). Row layout: see
+:mod:`codecsplat_warp.kernels.raster_project`.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+ROWS = wp.constant(10)
+"""Scalars per projected row (see raster_project.ROW_WIDTH)."""
+
+MAX_ALPHA = 0.999
+MIN_ALPHA = 1.0 / 255.0
+MIN_TRANSMITTANCE = 1.0e-4
+
+
+@wp.func
+def tile_pixel(block: int, lane: int, blocks_per_tile: int, tile_size: int, tiles_x: int, tiles_per_image: int):
+    """``vec4i(tile, camera, px, py)`` of the pixel owned by this thread."""
+    tile = block // blocks_per_tile
+    local = (block - tile * blocks_per_tile) * wp.block_dim() + lane
+    camera = tile // tiles_per_image
+    in_image = tile - camera * tiles_per_image
+    ty = in_image // tiles_x
+    tx = in_image - ty * tiles_x
+    return wp.vec4i(tile, camera, tx * tile_size + local % tile_size, ty * tile_size + local // tile_size)
+
+
+@wp.func
+def gaussian_power(rows: Any, t: int, px: Any, py: Any):
+    """``0.5 (a dx^2 + c dy^2) + b dx dy`` of staged row ``t`` at pixel centre (px, py)."""
+    dx = rows[t, 0] - px
+    dy = rows[t, 1] - py
+    return type(px)(0.5) * (rows[t, 2] * dx * dx + rows[t, 4] * dy * dy) + rows[t, 3] * dx * dy
+
+
+@functools.cache
+def composite_kernels(batch: int):
+    """The ``(composite_forward, composite_backward)`` kernels staging ``batch`` rows per step."""
+    BATCH = batch
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def composite_forward(
+        ranges: wp.array2d(dtype=wp.int32),
+        sorted_ids: wp.array(dtype=wp.int32),
+        splats: wp.array2d(dtype=Any),
+        background: wp.array2d(dtype=Any),
+        use_background: int,
+        render_depth: int,
+        width: int,
+        height: int,
+        tile_size: int,
+        tiles_x: int,
+        tiles_per_image: int,
+        blocks_per_tile: int,
+        out_color: wp.array2d(dtype=Any),
+        out_depth: wp.array(dtype=Any),
+        out_alpha: wp.array(dtype=Any),
+        out_transmittance: wp.array(dtype=Any),
+        out_last: wp.array(dtype=wp.int32),
+    ):
+        """Composite every pixel front to back.
+
+        Args:
+            ranges: ``[B * tiles_per_image, 2]`` half-open ranges into ``sorted_ids``.
+            sorted_ids: ``[M]`` flat row indices sorted by (camera, tile, depth).
+            splats: projected rows ``[B*N, 10]``; background: ``[B, 3]`` (read when ``use_background``).
+            render_depth: 1 to accumulate ``sum w_i z_i`` into ``out_depth``.
+            out_color: ``[B*H*W, 3]`` colour incl. background; out_depth: ``[B*H*W]`` accumulated depth;
+            out_alpha: ``1 - T``; out_transmittance: final ``T``; out_last: sorted index of the last
+                contributing row (``range start - 1`` when none).
+        """
+        block, lane = wp.tid()
+        where = tile_pixel(block, lane, blocks_per_tile, tile_size, tiles_x, tiles_per_image)
+        tile = where[0]
+        px = where[2]
+        py = where[3]
+        inside = px < width and py < height
+        start = ranges[tile, 0]
+        end = ranges[tile, 1]
+        zero = out_alpha.dtype(0.0)
+        one = out_alpha.dtype(1.0)
+        cx = out_alpha.dtype(float(px)) + out_alpha.dtype(0.5)
+        cy = out_alpha.dtype(float(py)) + out_alpha.dtype(0.5)
+        T = one
+        r = zero
+        g = zero
+        b = zero
+        depth = zero
+        last = start - 1
+        done = not inside
+        for batch_start in range(start, end, BATCH):
+            ids = wp.tile_load(sorted_ids, shape=BATCH, offset=batch_start, storage="shared")
+            rows = wp.tile_load_indexed(splats, indices=ids, shape=(BATCH, ROWS), offset=(0, 0), axis=0, storage="shared")
+            count = wp.min(BATCH, end - batch_start)
+            if not done:
+                for t in range(count):
+                    power = gaussian_power(rows, t, cx, cy)
+                    alpha = wp.min(out_alpha.dtype(MAX_ALPHA), rows[t, 5] * wp.exp(-power))
+                    if power < zero or alpha < out_alpha.dtype(MIN_ALPHA):
+                        continue
+                    next_T = T * (one - alpha)
+                    if next_T <= out_alpha.dtype(MIN_TRANSMITTANCE):
+                        done = True
+                        break
+                    weight = alpha * T
+                    r += weight * rows[t, 6]
+                    g += weight * rows[t, 7]
+                    b += weight * rows[t, 8]
+                    if render_depth != 0:
+                        depth += weight * rows[t, 9]
+                    last = batch_start + t
+                    T = next_T
+            finished = wp.tile_sum(wp.tile(wp.where(done, 1, 0)))
+            if finished[0] == wp.block_dim():
+                break
+        if inside:
+            pixel = (where[1] * height + py) * width + px
+            if use_background != 0:
+                r += T * background[where[1], 0]
+                g += T * background[where[1], 1]
+                b += T * background[where[1], 2]
+            out_color[pixel, 0] = r
+            out_color[pixel, 1] = g
+            out_color[pixel, 2] = b
+            if render_depth != 0:
+                out_depth[pixel] = depth
+            out_alpha[pixel] = one - T
+            out_transmittance[pixel] = T
+            out_last[pixel] = last
+
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def composite_backward(
+        ranges: wp.array2d(dtype=wp.int32),
+        sorted_ids: wp.array(dtype=wp.int32),
+        splats: wp.array2d(dtype=Any),
+        background: wp.array2d(dtype=Any),
+        use_background: int,
+        render_depth: int,
+        width: int,
+        height: int,
+        tile_size: int,
+        tiles_x: int,
+        tiles_per_image: int,
+        blocks_per_tile: int,
+        final_transmittance: wp.array(dtype=Any),
+        last_index: wp.array(dtype=wp.int32),
+        grad_color: wp.array2d(dtype=Any),
+        grad_depth: wp.array(dtype=Any),
+        grad_alpha: wp.array(dtype=Any),
+        grad_splats: wp.array2d(dtype=Any),
+    ):
+        """Accumulate d loss / d row for every contributing (pixel, row) pair, back to front.
+
+        Args:
+            ranges, sorted_ids, splats, background, ...: as in :func:`composite_forward`.
+            final_transmittance, last_index: saved by the forward, ``[B*H*W]``.
+            grad_color: ``[B*H*W, 3]``; grad_depth: ``[B*H*W]`` (of the accumulated depth); grad_alpha: ``[B*H*W]``.
+            grad_splats: ``[B*N, 10]`` zero-initialised, accumulated with atomics.
+        """
+        block, lane = wp.tid()
+        where = tile_pixel(block, lane, blocks_per_tile, tile_size, tiles_x, tiles_per_image)
+        tile = where[0]
+        px = where[2]
+        py = where[3]
+        inside = px < width and py < height
+        start = ranges[tile, 0]
+        end = ranges[tile, 1]
+        zero = grad_alpha.dtype(0.0)
+        one = grad_alpha.dtype(1.0)
+        cx = grad_alpha.dtype(float(px)) + grad_alpha.dtype(0.5)
+        cy = grad_alpha.dtype(float(py)) + grad_alpha.dtype(0.5)
+
+        last = start - 1
+        T_final = one
+        v_r = zero
+        v_g = zero
+        v_b = zero
+        v_depth = zero
+        v_alpha_out = zero
+        background_dot = zero
+        if inside:
+            pixel = (where[1] * height + py) * width + px
+            last = last_index[pixel]
+            T_final = final_transmittance[pixel]
+            v_r = grad_color[pixel, 0]
+            v_g = grad_color[pixel, 1]
+            v_b = grad_color[pixel, 2]
+            if render_depth != 0:
+                v_depth = grad_depth[pixel]
+            v_alpha_out = grad_alpha[pixel]
+            if use_background != 0:
+                background_dot = (
+                    background[where[1], 0] * v_r + background[where[1], 1] * v_g + background[where[1], 2] * v_b
+                )
+        # Rows after the block's largest last index contribute to no pixel of the block: skip them.
+        block_last = wp.tile_max(wp.tile(last))[0]
+        T = T_final
+        acc_r = zero
+        acc_g = zero
+        acc_b = zero
+        acc_depth = zero
+        batch_end = block_last + 1
+        while batch_end > start:
+            batch_start = wp.max(start, batch_end - BATCH)
+            ids = wp.tile_load(sorted_ids, shape=BATCH, offset=batch_start, storage="shared")
+            rows = wp.tile_load_indexed(splats, indices=ids, shape=(BATCH, ROWS), offset=(0, 0), axis=0, storage="shared")
+            count = wp.min(batch_end, last + 1) - batch_start
+            for step in range(count):
+                t = count - 1 - step
+                power = gaussian_power(rows, t, cx, cy)
+                vis = wp.exp(-power)
+                opacity = rows[t, 5]
+                alpha = wp.min(grad_alpha.dtype(MAX_ALPHA), opacity * vis)
+                if power < zero or alpha < grad_alpha.dtype(MIN_ALPHA):
+                    continue
+                ra = one / (one - alpha)
+                T = T * ra
+                weight = alpha * T
+                c_r = rows[t, 6]
+                c_g = rows[t, 7]
+                c_b = rows[t, 8]
+                z = rows[t, 9]
+                v_alpha = (c_r * T - acc_r * ra) * v_r + (c_g * T - acc_g * ra) * v_g + (c_b * T - acc_b * ra) * v_b
+                v_alpha += (z * T - acc_depth * ra) * v_depth
+                v_alpha += T_final * ra * v_alpha_out - T_final * ra * background_dot
+                row = ids[t]
+                wp.atomic_add(grad_splats, row, 6, weight * v_r)
+                wp.atomic_add(grad_splats, row, 7, weight * v_g)
+                wp.atomic_add(grad_splats, row, 8, weight * v_b)
+                if render_depth != 0:
+                    wp.atomic_add(grad_splats, row, 9, weight * v_depth)
+                if opacity * vis <= grad_alpha.dtype(MAX_ALPHA):
+                    v_power = -opacity * vis * v_alpha
+                    dx = rows[t, 0] - cx
+                    dy = rows[t, 1] - cy
+                    wp.atomic_add(grad_splats, row, 0, v_power * (rows[t, 2] * dx + rows[t, 3] * dy))
+                    wp.atomic_add(grad_splats, row, 1, v_power * (rows[t, 3] * dx + rows[t, 4] * dy))
+                    wp.atomic_add(grad_splats, row, 2, grad_alpha.dtype(0.5) * v_power * dx * dx)
+                    wp.atomic_add(grad_splats, row, 3, v_power * dx * dy)
+                    wp.atomic_add(grad_splats, row, 4, grad_alpha.dtype(0.5) * v_power * dy * dy)
+                    wp.atomic_add(grad_splats, row, 5, vis * v_alpha)
+                acc_r += c_r * weight
+                acc_g += c_g * weight
+                acc_b += c_b * weight
+                acc_depth += z * weight
+            batch_end = batch_start
+
+    return composite_forward, composite_backward

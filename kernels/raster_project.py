@@ -1,0 +1,347 @@
+"""EWA projection of 3D Gaussians into pinhole cameras (forward with culling, and a differentiable twin).
+
+Conventions (those of :mod:`codecsplat_warp.cameras` and of gsplat 1.5.3): ``viewmat`` is world-to-camera
+with OpenCV axes (x right, y down, z forward), ``K`` is in pixels, pixel ``(i, j)`` has its centre at
+``(i + 0.5, j + 0.5)``; quaternions are ``(w, x, y, z)`` and need not be normalised.
+
+One thread per (camera, Gaussian) writes one *projected row* of 10 scalars (the packed record the
+compositing kernels stage through shared memory):
+
+    0, 1  mean2d x, y (pixels)
+    2..4  conic (a, b, c) of the blurred 2D covariance: power = 0.5 (a dx^2 + c dy^2) + b dx dy
+    5     opacity (times the antialiasing compensation in antialiased mode)
+    6..8  colour RGB (SH evaluated towards the Gaussian, + 0.5, clamped at 0; or the given RGB)
+    9     camera-space depth z
+
+:func:`project_gaussians` also culls (non-finite, z outside (near, far), det <= 0 after the blur,
+opacity < 1/255, off-screen), writes integer pixel radii from the opacity-aware extent
+``min(3.33, sqrt(2 ln(255 opacity)))`` sigma, the number of 16x16 tiles each row touches, and input
+validation flags. :func:`project_gaussians_differentiable` recomputes only the differentiable row of the
+visible Gaussians and is launched with ``adjoint=True`` for the backward pass (straight-line code, so
+Warp's automatic adjoint is exact; a float64 gradcheck covers it).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+from .raster_tiles import tile_rect
+from .sh import sh_color
+
+ALPHA_THRESHOLD = 1.0 / 255.0
+"""Opacity/alpha below which a Gaussian contributes nothing (gsplat's ALPHA_THRESHOLD)."""
+
+MAX_EXTENT_SIGMAS = 3.33
+"""Largest bounding extent in standard deviations (gsplat's default)."""
+
+ROW_WIDTH = 10
+"""Scalars per projected row."""
+
+BAD_MEANS, BAD_QUATS, BAD_SCALES, BAD_OPACITIES, BAD_COLORS, BAD_VIEWMATS, BAD_KS, ZERO_QUATS = range(8)
+"""Slots of the validation flag array (count of offending rows per argument)."""
+NUM_FLAGS = 8
+
+
+@wp.func
+def world_to_camera(viewmat: Any, point: Any):
+    """Camera-space position of a world point (``viewmat`` is a 4x4 world-to-camera matrix)."""
+    return wp.vector(
+        viewmat[0, 0] * point[0] + viewmat[0, 1] * point[1] + viewmat[0, 2] * point[2] + viewmat[0, 3],
+        viewmat[1, 0] * point[0] + viewmat[1, 1] * point[1] + viewmat[1, 2] * point[2] + viewmat[1, 3],
+        viewmat[2, 0] * point[0] + viewmat[2, 1] * point[1] + viewmat[2, 2] * point[2] + viewmat[2, 3],
+    )
+
+
+@wp.func
+def camera_center(viewmat: Any):
+    """World position of the camera centre, ``-R^T t``."""
+    return wp.vector(
+        -(viewmat[0, 0] * viewmat[0, 3] + viewmat[1, 0] * viewmat[1, 3] + viewmat[2, 0] * viewmat[2, 3]),
+        -(viewmat[0, 1] * viewmat[0, 3] + viewmat[1, 1] * viewmat[1, 3] + viewmat[2, 1] * viewmat[2, 3]),
+        -(viewmat[0, 2] * viewmat[0, 3] + viewmat[1, 2] * viewmat[1, 3] + viewmat[2, 2] * viewmat[2, 3]),
+    )
+
+
+@wp.func
+def camera_covariance(viewmat: Any, quat: Any, scale: Any):
+    """Camera-space 3x3 covariance ``R_cam (R_q S)(R_q S)^T R_cam^T`` from a wxyz quaternion and scales."""
+    q = wp.normalize(quat)
+    w = q[0]
+    x = q[1]
+    y = q[2]
+    z = q[3]
+    one = type(w)(1.0)
+    two = type(w)(2.0)
+    rot = wp.matrix(
+        one - two * (y * y + z * z), two * (x * y - w * z), two * (x * z + w * y),
+        two * (x * y + w * z), one - two * (x * x + z * z), two * (y * z - w * x),
+        two * (x * z - w * y), two * (y * z + w * x), one - two * (x * x + y * y),
+        shape=(3, 3),
+    )  # fmt: skip
+    m = rot * wp.diag(scale)
+    view_rot = wp.matrix(
+        viewmat[0, 0], viewmat[0, 1], viewmat[0, 2],
+        viewmat[1, 0], viewmat[1, 1], viewmat[1, 2],
+        viewmat[2, 0], viewmat[2, 1], viewmat[2, 2],
+        shape=(3, 3),
+    )  # fmt: skip
+    vm = view_rot * m
+    return vm * wp.transpose(vm)
+
+
+@wp.func
+def projected_covariance(p: Any, cov: Any, K: Any, width: int, height: int):
+    """EWA 2x2 image covariance ``J cov J^T`` (no blur), with x/z and y/z clamped to the frustum + 30 %.
+
+    The clamp follows gsplat: limits ``(W - cx)/fx + 0.3 tan_fovx`` and ``cx/fx + 0.3 tan_fovx``
+    (same in y); the gradient through a clamped coordinate is zero.
+    """
+    fx = K[0, 0]
+    fy = K[1, 1]
+    cx = K[0, 2]
+    cy = K[1, 2]
+    zero = type(fx)(0.0)
+    w = type(fx)(float(width))
+    h = type(fx)(float(height))
+    margin = type(fx)(0.3 * 0.5)
+    lim_x_pos = (w - cx) / fx + margin * w / fx
+    lim_x_neg = cx / fx + margin * w / fx
+    lim_y_pos = (h - cy) / fy + margin * h / fy
+    lim_y_neg = cy / fy + margin * h / fy
+    z = p[2]
+    tx = z * wp.clamp(p[0] / z, -lim_x_neg, lim_x_pos)
+    ty = z * wp.clamp(p[1] / z, -lim_y_neg, lim_y_pos)
+    jac = wp.matrix(
+        fx / z, zero, -fx * tx / (z * z),
+        zero, fy / z, -fy * ty / (z * z),
+        shape=(2, 3),
+    )  # fmt: skip
+    return jac * cov * wp.transpose(jac)
+
+
+@wp.func
+def projected_mean(p: Any, K: Any):
+    """Pixel position of a camera-space point (pixel centres at +0.5 are implied by K's convention)."""
+    return wp.vector(K[0, 0] * p[0] / p[2] + K[0, 2], K[1, 1] * p[1] / p[2] + K[1, 2])
+
+
+@wp.func
+def blur_compensation(det_orig: Any, det_blur: Any):
+    """``sqrt(max(det_orig / det_blur, 0))`` with a finite derivative at 0 (r / sqrt(max(r, 1e-12)))."""
+    r = wp.max(det_orig / det_blur, type(det_orig)(0.0))
+    return r / wp.sqrt(wp.max(r, type(det_orig)(1.0e-12)))
+
+
+@wp.func
+def gaussian_color(coeffs: wp.array2d(dtype=Any), n: int, sh_degree: int, mean: Any, viewmat: Any):
+    """RGB of Gaussian ``n``: the given colour (``sh_degree < 0``) or ``max(SH(mean - centre) + 0.5, 0)``."""
+    if sh_degree < 0:
+        return coeffs[n, 0]
+    c = sh_color(coeffs, n, sh_degree, mean - camera_center(viewmat))
+    half = type(c[0])(0.5)
+    zero = type(c[0])(0.0)
+    return wp.vector(wp.max(c[0] + half, zero), wp.max(c[1] + half, zero), wp.max(c[2] + half, zero))
+
+
+@wp.func
+def write_row(
+    splats: wp.array2d(dtype=Any), i: int, mean2d: Any, conic: Any, opacity: Any, color: Any, depth: Any
+):
+    """Store one projected row (layout in the module docstring)."""
+    splats[i, 0] = mean2d[0]
+    splats[i, 1] = mean2d[1]
+    splats[i, 2] = conic[0]
+    splats[i, 3] = conic[1]
+    splats[i, 4] = conic[2]
+    splats[i, 5] = opacity
+    splats[i, 6] = color[0]
+    splats[i, 7] = color[1]
+    splats[i, 8] = color[2]
+    splats[i, 9] = depth
+
+
+@wp.func
+def flag_non_finite3(v: Any, flags: wp.array(dtype=wp.int32), slot: int):
+    if not (wp.isfinite(v[0]) and wp.isfinite(v[1]) and wp.isfinite(v[2])):
+        wp.atomic_add(flags, slot, 1)
+
+
+@wp.func
+def validate_inputs(
+    b: int,
+    n: int,
+    mean: Any,
+    quat: Any,
+    scale: Any,
+    opacity: Any,
+    coeffs: wp.array2d(dtype=Any),
+    viewmat: Any,
+    K: Any,
+    flags: wp.array(dtype=wp.int32),
+):
+    """Count non-finite rows per argument (Gaussians on camera 0, cameras on Gaussian 0) and zero quaternions."""
+    if b == 0:
+        flag_non_finite3(mean, flags, BAD_MEANS)
+        flag_non_finite3(scale, flags, BAD_SCALES)
+        if not (wp.isfinite(quat[0]) and wp.isfinite(quat[1]) and wp.isfinite(quat[2]) and wp.isfinite(quat[3])):
+            wp.atomic_add(flags, BAD_QUATS, 1)
+        elif wp.dot(quat, quat) == type(opacity)(0.0):
+            wp.atomic_add(flags, ZERO_QUATS, 1)
+        if not wp.isfinite(opacity):
+            wp.atomic_add(flags, BAD_OPACITIES, 1)
+        for k in range(coeffs.shape[1]):
+            flag_non_finite3(coeffs[n, k], flags, BAD_COLORS)
+    if n == 0:
+        for r in range(4):
+            for c in range(4):
+                if not wp.isfinite(viewmat[r, c]):
+                    wp.atomic_add(flags, BAD_VIEWMATS, 1)
+        for r in range(3):
+            for c in range(3):
+                if not wp.isfinite(K[r, c]):
+                    wp.atomic_add(flags, BAD_KS, 1)
+
+
+@wp.func
+def row_is_finite(mean2d: Any, conic: Any, opacity: Any, color: Any):
+    return (
+        wp.isfinite(mean2d[0])
+        and wp.isfinite(mean2d[1])
+        and wp.isfinite(conic[0])
+        and wp.isfinite(conic[1])
+        and wp.isfinite(conic[2])
+        and wp.isfinite(opacity)
+        and wp.isfinite(color[0])
+        and wp.isfinite(color[1])
+        and wp.isfinite(color[2])
+    )
+
+
+@wp.kernel
+def project_gaussians(
+    means: wp.array(dtype=Any),
+    quats: wp.array(dtype=Any),
+    scales: wp.array(dtype=Any),
+    opacities: wp.array(dtype=Any),
+    coeffs: wp.array2d(dtype=Any),
+    viewmats: wp.array(dtype=Any),
+    Ks: wp.array(dtype=Any),
+    sh_degree: int,
+    width: int,
+    height: int,
+    near: Any,
+    far: Any,
+    eps2d: Any,
+    antialiased: int,
+    tile_size: int,
+    tiles_x: int,
+    tiles_y: int,
+    splats: wp.array2d(dtype=Any),
+    radii: wp.array(dtype=wp.vec2i),
+    tile_counts: wp.array(dtype=wp.int64),
+    flags: wp.array(dtype=wp.int32),
+):
+    """Project, cull and bin-count every (camera b, Gaussian n); launch with ``dim=(B, N)``.
+
+    Args:
+        means, scales: ``[N]`` 3-vectors (world units); quats: ``[N]`` wxyz 4-vectors; opacities: ``[N]`` in [0, 1].
+        coeffs: ``[N, K]`` RGB vectors: SH coefficients (``sh_degree`` 0..3) or the colour (``sh_degree = -1``, K = 1).
+        viewmats: ``[B]`` 4x4 world-to-camera; Ks: ``[B]`` 3x3 intrinsics in pixels.
+        near, far: depth range (exclusive); eps2d: low-pass blur in px^2 (0.3); antialiased: 1 to scale
+            opacity by the blur compensation ``sqrt(det / det_blur)``.
+        splats: output rows ``[B*N, 10]`` (zero for culled Gaussians); radii: ``[B*N]`` pixel radii (0 = culled);
+        tile_counts: ``[B*N]`` int64 tiles touched; flags: ``[8]`` validation counters (zero-initialised).
+    """
+    b, n = wp.tid()
+    num = means.shape[0]
+    i = b * num + n
+    mean = means[n]
+    quat = quats[n]
+    scale = scales[n]
+    opacity = opacities[n]
+    viewmat = viewmats[b]
+    K = Ks[b]
+    validate_inputs(b, n, mean, quat, scale, opacity, coeffs, viewmat, K, flags)
+
+    zero = type(opacity)(0.0)
+    radii[i] = wp.vec2i(0, 0)
+    tile_counts[i] = wp.int64(0)
+    p = world_to_camera(viewmat, mean)
+    if not (p[2] > near and p[2] < far and wp.isfinite(p[0]) and wp.isfinite(p[1])):
+        return
+    cov2d = projected_covariance(p, camera_covariance(viewmat, quat, scale), K, width, height)
+    det_orig = wp.determinant(cov2d)
+    blurred = cov2d + wp.identity(n=2, dtype=type(opacity)) * eps2d
+    det = wp.determinant(blurred)
+    if not (det > zero):
+        return
+    conic = wp.vector(blurred[1, 1] / det, -blurred[0, 1] / det, blurred[0, 0] / det)
+    effective_opacity = opacity
+    if antialiased != 0:
+        effective_opacity = opacity * blur_compensation(det_orig, det)
+    if not (effective_opacity >= type(opacity)(ALPHA_THRESHOLD)):
+        return
+    extent = wp.min(
+        type(opacity)(MAX_EXTENT_SIGMAS), wp.sqrt(type(opacity)(2.0) * wp.log(effective_opacity * type(opacity)(255.0)))
+    )
+    radius = wp.vec2i(int(wp.ceil(extent * wp.sqrt(blurred[0, 0]))), int(wp.ceil(extent * wp.sqrt(blurred[1, 1]))))
+    if radius[0] <= 0 and radius[1] <= 0:
+        return
+    mean2d = projected_mean(p, K)
+    rx = type(opacity)(float(radius[0]))
+    ry = type(opacity)(float(radius[1]))
+    if mean2d[0] + rx <= zero or mean2d[0] - rx >= type(opacity)(float(width)):
+        return
+    if mean2d[1] + ry <= zero or mean2d[1] - ry >= type(opacity)(float(height)):
+        return
+    color = gaussian_color(coeffs, n, sh_degree, mean, viewmat)
+    if not row_is_finite(mean2d, conic, effective_opacity, color):
+        return
+    write_row(splats, i, mean2d, conic, effective_opacity, color, p[2])
+    rect = tile_rect(mean2d[0], mean2d[1], radius, tile_size, tiles_x, tiles_y)
+    radii[i] = radius
+    tile_counts[i] = wp.int64((rect[2] - rect[0]) * (rect[3] - rect[1]))
+
+
+@wp.kernel
+def project_gaussians_differentiable(
+    means: wp.array(dtype=Any),
+    quats: wp.array(dtype=Any),
+    scales: wp.array(dtype=Any),
+    opacities: wp.array(dtype=Any),
+    coeffs: wp.array2d(dtype=Any),
+    viewmats: wp.array(dtype=Any),
+    Ks: wp.array(dtype=Any),
+    radii: wp.array(dtype=wp.vec2i),
+    sh_degree: int,
+    width: int,
+    height: int,
+    eps2d: Any,
+    antialiased: int,
+    splats: wp.array2d(dtype=Any),
+):
+    """The differentiable part of :func:`project_gaussians` for rows with non-zero radii (``dim=(B, N)``).
+
+    Launch with ``adjoint=True``, ``adj_outputs`` = gradient of the rows, to get gradients of means,
+    quats, scales, opacities and coeffs (accumulated over cameras). Culled rows get no gradient.
+    """
+    b, n = wp.tid()
+    i = b * means.shape[0] + n
+    if radii[i][0] == 0 and radii[i][1] == 0:
+        return
+    mean = means[n]
+    opacity = opacities[n]
+    viewmat = viewmats[b]
+    K = Ks[b]
+    p = world_to_camera(viewmat, mean)
+    cov2d = projected_covariance(p, camera_covariance(viewmat, quats[n], scales[n]), K, width, height)
+    blurred = cov2d + wp.identity(n=2, dtype=type(opacity)) * eps2d
+    det = wp.determinant(blurred)
+    conic = wp.vector(blurred[1, 1] / det, -blurred[0, 1] / det, blurred[0, 0] / det)
+    effective_opacity = opacity
+    if antialiased != 0:
+        effective_opacity = opacity * blur_compensation(wp.determinant(cov2d), det)
+    color = gaussian_color(coeffs, n, sh_degree, mean, viewmat)
+    write_row(splats, i, projected_mean(p, K), conic, effective_opacity, color, p[2])

@@ -1,0 +1,238 @@
+"""Warp Gaussian rasterizer vs. the dense torch reference, gradcheck, gsplat's pure-torch functions, edge cases."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from conftest import DEVICES
+
+from codecsplat_warp.errors import InputError, RasterMemoryError
+from codecsplat_warp.ops.raster import project_gaussians, rasterize
+from codecsplat_warp.reference.raster import rasterize_dense
+from codecsplat_warp.synthetic import random_gaussians as make_scene
+
+
+def relative_error(a, b):
+    return ((a - b).abs().max() / b.abs().max().clamp_min(1e-12)).item()
+
+
+def render_both(scene, width, height, **kwargs):
+    """Render with Warp and the dense reference, and differentiate a random weighting of all outputs."""
+    leaves = [t.detach().clone().requires_grad_() for t in scene[:5]]
+    background = kwargs.pop("background", None)
+    if background is not None:
+        background = background.detach().clone().requires_grad_()
+    inputs = [*leaves, *scene[5:]]
+    ours = rasterize(*inputs, width, height, background=background, **kwargs)
+    ref = rasterize_dense(*inputs, width, height, background=background, **kwargs)
+    g = torch.Generator().manual_seed(1)
+    weights = [torch.rand(o.shape, generator=g, dtype=o.dtype).to(o.device) for o in ref[:3]]
+    wrt = leaves + ([background] if background is not None else [])
+    grads_ours = torch.autograd.grad(sum((o * w).sum() for o, w in zip(ours[:3], weights)), wrt, allow_unused=True)
+    grads_ref = torch.autograd.grad(sum((o * w).sum() for o, w in zip(ref[:3], weights)), wrt, allow_unused=True)
+    return ours, ref, grads_ours, grads_ref
+
+
+def assert_matches_reference(ours, ref, grads_ours, grads_ref, image_atol, grad_rtol):
+    rgb, depth, alpha, meta = ours
+    assert torch.equal(meta.radii, ref[3])
+    assert (rgb - ref[0]).abs().max() <= image_atol
+    assert (alpha - ref[2]).abs().max() <= image_atol
+    if depth is not None:
+        assert relative_error(depth, ref[1]) <= image_atol * 10
+    for name, a, b in zip(("means", "quats", "scales", "opacities", "colors", "background"), grads_ours, grads_ref):
+        assert torch.isfinite(a).all(), name
+        assert relative_error(a, b) <= grad_rtol, name
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize(
+    "mode, sh_degree, width, height, cameras",
+    [("classic", None, 19, 13, 2), ("antialiased", 3, 16, 16, 1), ("classic", 1, 33, 20, 1)],
+)
+def test_matches_dense_reference_float64(device, mode, sh_degree, width, height, cameras):
+    scene = make_scene(30, width, height, cameras, sh_degree, device=device)
+    background = torch.rand(cameras, 3, dtype=torch.float64, device=device)
+    result = render_both(scene, width, height, background=background, mode=mode)
+    assert result[0][3].intersection_count > 0
+    assert_matches_reference(*result, image_atol=1e-9, grad_rtol=1e-7)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("mode", ["classic", "antialiased"])
+def test_matches_dense_reference_float32(device, mode):
+    scene = make_scene(40, 24, 18, 2, sh_degree=2, dtype=torch.float32, device=device)
+    background = torch.rand(2, 3, device=device)
+    result = render_both(scene, 24, 18, background=background, mode=mode)
+    assert_matches_reference(*result, image_atol=1e-5, grad_rtol=1e-4)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_tile_size_and_render_depth_do_not_change_the_image(device):
+    scene = make_scene(30, 21, 21, device=device)
+    rgb16, depth16, alpha16, _ = rasterize(*scene, 21, 21, tile_size=16)
+    rgb8, depth8, alpha8, meta8 = rasterize(*scene, 21, 21, tile_size=8, render_depth=False)
+    assert depth8 is None and meta8.tile_size == 8
+    assert (rgb16 - rgb8).abs().max() < 1e-12 and (alpha16 - alpha8).abs().max() < 1e-12
+
+
+@pytest.mark.parametrize(
+    "argument, sh_degree, mode",
+    [("means", None, "classic"), ("quats", None, "antialiased"), ("scales", None, "antialiased"),
+     ("opacities", None, "classic"), ("colors", None, "classic"), ("colors", 1, "classic"),
+     ("colors", 3, "antialiased")],
+)  # fmt: skip
+def test_gradcheck_float64(argument, sh_degree, mode):
+    scene = make_scene(20, 16, 16, sh_degree=sh_degree, seed=3)
+    index = ("means", "quats", "scales", "opacities", "colors").index(argument)
+    background = torch.tensor([[0.2, 0.3, 0.4]], dtype=torch.float64)
+
+    def render(x):
+        inputs = list(scene)
+        inputs[index] = x
+        rgb, depth, alpha, _ = rasterize(*inputs, 16, 16, background=background, mode=mode)
+        return torch.cat([rgb, depth, alpha], dim=-1)
+
+    x = scene[index].clone().requires_grad_()
+    assert torch.autograd.gradcheck(render, (x,), eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
+
+
+def test_gradcheck_background():
+    scene = make_scene(20, 16, 16, seed=4)
+
+    def render(background):
+        return rasterize(*scene, 16, 16, background=background)[0]
+
+    background = torch.tensor([[0.2, 0.3, 0.4]], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(render, (background,), fast_mode=True)
+
+
+gsplat_impl = pytest.importorskip("gsplat.cuda._torch_impl", reason="gsplat 1.5.3 (test extra) is not installed")
+
+
+@pytest.mark.parametrize("mode", ["classic", "antialiased"])
+def test_projection_matches_gsplat(mode):
+    means, quats, scales, _, colors, viewmats, Ks = make_scene(60, 40, 30, cameras=2, sh_degree=3, seed=5)
+    means[:5, 2] = -1.0  # behind the camera
+    opacities = torch.ones(60, dtype=torch.float64)
+    ours = project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, 40, 30, mode=mode)
+    covars, _ = gsplat_impl._quat_scale_to_covar_preci(quats, scales, compute_preci=False)
+    radii, means2d, depths, conics, comp = gsplat_impl._fully_fused_projection(
+        means, covars, viewmats, Ks, 40, 30, eps2d=0.3, calc_compensations=(mode == "antialiased")
+    )
+    visible = (ours.radii > 0).all(-1)
+    assert visible.sum() > 50 and not visible[:, :5].any()
+    assert torch.equal(visible, (radii > 0).all(-1))
+    torch.testing.assert_close(ours.means2d[visible], means2d[visible], rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(ours.depths[visible], depths[visible], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(ours.conics[visible], conics[visible], rtol=1e-9, atol=1e-12)
+    expected_opacity = comp if mode == "antialiased" else torch.ones_like(depths)
+    torch.testing.assert_close(ours.opacities[visible], expected_opacity[visible], rtol=1e-8, atol=1e-12)
+    # Radii: gsplat's CUDA rule, min(3.33, sqrt(2 ln(255 o))) sigma of the blurred covariance, from gsplat's conics.
+    blurred = torch.linalg.inv(
+        torch.stack([conics[..., 0], conics[..., 1], conics[..., 1], conics[..., 2]], -1).reshape(2, 60, 2, 2)
+    )
+    extent = torch.clamp(torch.sqrt(2 * torch.log(255 * expected_opacity)), max=3.33)
+    expected_radii = torch.ceil(extent[..., None] * torch.sqrt(torch.diagonal(blurred, dim1=-2, dim2=-1)))
+    assert torch.equal(ours.radii[visible].double(), expected_radii[visible])
+    # SH colours: gsplat's evaluation towards the mean from the camera centre, + 0.5, clamped at 0.
+    centers = torch.linalg.inv(viewmats)[:, :3, 3]
+    for degree in range(4):
+        ours = project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, 40, 30, sh_degree=degree)
+        sh = gsplat_impl._spherical_harmonics(degree, means[None] - centers[:, None], colors[None].expand(2, -1, -1, -1))
+        expected = torch.clamp_min(sh + 0.5, 0.0)
+        torch.testing.assert_close(ours.colors[visible], expected[visible], rtol=1e-10, atol=1e-12)
+
+
+def test_zero_gaussians_render_the_background():
+    scene = make_scene(0, 8, 8)
+    background = torch.tensor([[0.1, 0.5, 0.9]], dtype=torch.float64, requires_grad=True)
+    rgb, depth, alpha, meta = rasterize(*scene, 8, 8, background=background)
+    assert torch.equal(rgb[0, 3, 4], background[0].detach()) and alpha.abs().max() == 0 and depth.abs().max() == 0
+    assert meta.intersection_count == 0 and meta.radii.shape == (1, 0, 2)
+    rgb.sum().backward()
+    assert torch.equal(background.grad, torch.full((1, 3), 64.0, dtype=torch.float64))
+
+
+def test_all_culled_gives_background_and_zero_gradients():
+    scene = make_scene(10, 8, 8)
+    scene[0] = scene[0] * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)  # everything behind the camera
+    leaves = [t.clone().requires_grad_() for t in scene[:5]]
+    background = torch.tensor([[0.1, 0.5, 0.9]], dtype=torch.float64)
+    rgb, depth, alpha, meta = rasterize(*leaves, *scene[5:], 8, 8, background=background)
+    assert torch.equal(rgb, background[:, None, None].expand(1, 8, 8, 3)) and alpha.abs().max() == 0
+    assert meta.intersection_count == 0 and meta.visible_counts.tolist() == [0]
+    (rgb.sum() + depth.sum() + alpha.sum()).backward()
+    for leaf in leaves:
+        assert leaf.grad is not None and leaf.grad.abs().max() == 0
+
+
+def test_near_plane_is_exclusive_and_far_culls():
+    means, quats, scales, opacities, colors, viewmats, Ks = make_scene(3, 16, 16)
+    means[:, :2] = 0.0
+    means[:, 2] = torch.tensor([0.5, 0.5 + 1e-9, 20.0], dtype=torch.float64)
+    proj = project_gaussians(means, quats, scales, opacities, colors, viewmats, Ks, 16, 16, near=0.5, far=10.0)
+    assert (proj.radii[0] > 0).all(-1).tolist() == [False, True, False]
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["huge_scales", "tiny_scales", "flat", "opacity_0_and_1", "one_by_one", "odd_size", "close_to_camera"],
+)
+def test_hard_inputs_match_reference_and_stay_finite(case):
+    width, height = {"one_by_one": (1, 1), "odd_size": (17, 5)}.get(case, (16, 16))
+    scene = make_scene(25, width, height, seed=7)
+    if case == "huge_scales":
+        scene[2][:3] = 1e3
+    elif case == "tiny_scales":
+        scene[2][:] = 1e-8
+    elif case == "flat":
+        scene[2][:, 0] = 0.0
+    elif case == "opacity_0_and_1":
+        scene[3][::2] = 0.0
+        scene[3][1::2] = 1.0
+    elif case == "close_to_camera":
+        scene[0][:, 2] = torch.linspace(0.02, 0.5, 25, dtype=torch.float64)
+    background = torch.rand(1, 3, dtype=torch.float64)
+    result = render_both(scene, width, height, background=background, mode="antialiased")
+    assert all(torch.isfinite(t).all() for t in result[0][:3])
+    # Near-flat footprints make det(cov2d) ill-conditioned: two float64 evaluation orders differ by ~1e-9.
+    assert_matches_reference(*result, image_atol=1e-7, grad_rtol=1e-5)
+
+
+@pytest.mark.parametrize("argument", ["means", "quats", "scales", "opacities", "colors", "viewmats", "Ks", "background"])
+@pytest.mark.parametrize("value", [math.nan, math.inf])
+def test_non_finite_inputs_raise_input_error(argument, value):
+    scene = dict(zip(("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks"), make_scene(6, 8, 8)))
+    scene["background"] = torch.zeros(1, 3, dtype=torch.float64)
+    scene[argument].view(-1)[-1] = value
+    background = scene.pop("background")
+    with pytest.raises(InputError, match=argument):
+        rasterize(**scene, width=8, height=8, background=background)
+
+
+def test_zero_quaternion_and_bad_arguments_raise_input_error():
+    scene = make_scene(4, 8, 8)
+    quats = scene[1].clone()
+    quats[2] = 0.0
+    with pytest.raises(InputError, match="quats"):
+        rasterize(scene[0], quats, *scene[2:], 8, 8)
+    with pytest.raises(InputError, match="scales"):
+        rasterize(scene[0], scene[1], scene[2][:3], *scene[3:], 8, 8)
+    with pytest.raises(InputError, match="mode"):
+        rasterize(*scene, 8, 8, mode="fancy")
+    with pytest.raises(InputError, match="sh_degree"):
+        rasterize(*scene[:4], torch.zeros(4, 4, 3, dtype=torch.float64), *scene[5:], 8, 8, sh_degree=2)
+    with pytest.raises(InputError, match="width"):
+        rasterize(*scene, 0, 8)
+    with pytest.raises(InputError, match="near"):
+        rasterize(*scene, 8, 8, near=0.0)
+
+
+def test_memory_budget_raises_before_allocating():
+    scene = make_scene(30, 32, 32)
+    count = rasterize(*scene, 32, 32)[3].intersection_count
+    with pytest.raises(RasterMemoryError, match=f"{count:,} tile intersections need {24 * count:,} bytes"):
+        rasterize(*scene, 32, 32, max_intersection_bytes=24 * count - 1)
