@@ -35,3 +35,12 @@ def data_root() -> pathlib.Path:
 @pytest.fixture(autouse=True)
 def _seed() -> None:
     torch.manual_seed(0)
+
+
+LPIPS_WEIGHTS = pathlib.Path(os.environ.get("CODECSPLAT_LPIPS_WEIGHTS", "")).resolve() if os.environ.get("CODECSPLAT_LPIPS_WEIGHTS") else None
+"""Folder with lpips_vgg.safetensors and lpips_alex.safetensors (``CODECSPLAT_LPIPS_WEIGHTS``; .ci/run sets it)."""
+
+needs_lpips = pytest.mark.skipif(
+    LPIPS_WEIGHTS is None or not (LPIPS_WEIGHTS / "lpips_vgg.safetensors").is_file(),
+    reason="CODECSPLAT_LPIPS_WEIGHTS is unset or lacks lpips_vgg.safetensors (.ci/run sets ../shared/weights)",
+)

@@ -1,0 +1,202 @@
+"""3D Gaussians and the 2D->3D map (paper Eq. 10): pixel-aligned camera-space predictions to world space.
+
+Everything a Gaussian head predicts in a camera's frame is moved to world space here:
+
+* centres: the pixel centre shifted by the predicted sub-pixel offset, unprojected at its depth
+  (:func:`codecsplat_warp.ops.geometry.unproject` plus the exact in-plane shift ``R_c2w (du d/fx, dv d/fy, 0)``);
+* rotations: ``q_world = q(R_c2w) * q_cam`` (forgetting this is a known bug in exported feed-forward PLYs);
+* SH colours: rotated by ``R_c2w`` per degree, so that evaluating them with world-space view directions
+  gives the colour the head predicted for the corresponding camera-space directions;
+* scales and opacities are frame-independent.
+
+SH conventions are those of 3DGS / gsplat: colour = sum_k sh[k] * Y_k(dir) (+0.5 added by the renderer),
+real basis ordered as in :func:`sh_basis`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import torch
+
+from ..cameras import Cameras
+from ..errors import InputError
+from ..ops.geometry import unproject
+from .heads import PixelGaussians
+
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+         1.445305721320277, -0.5900435899266435)
+
+
+@dataclass
+class Gaussians:
+    """N 3D Gaussians in world space (OpenCV-world of the cameras).
+
+    Attributes:
+        means: [N,3] centres.
+        quats: [N,4] unit quaternions (w,x,y,z), Gaussian frame -> world.
+        scales: [N,3] standard deviations along the Gaussian's axes (world units).
+        opacities: [N] in (0,1).
+        sh: [N,K,3] SH colour coefficients, K = (degree+1)^2, w.r.t. world-space view directions.
+    """
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    scales: torch.Tensor
+    opacities: torch.Tensor
+    sh: torch.Tensor
+
+    def __post_init__(self) -> None:
+        n = self.means.shape[0]
+        expected = {"means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,)}
+        for name, shape in expected.items():
+            if tuple(getattr(self, name).shape) != shape:
+                raise InputError(f"Gaussians.{name} must have shape {list(shape)}, got {tuple(getattr(self, name).shape)}")
+        k = self.sh.shape[1] if self.sh.dim() == 3 else -1
+        if self.sh.dim() != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3 or round(k**0.5) ** 2 != k:
+            raise InputError(f"Gaussians.sh must have shape [{n},K,3] with K a square, got {tuple(self.sh.shape)}")
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def sh_degree(self) -> int:
+        """Degree of the SH colours (K = (degree+1)^2)."""
+        return round(self.sh.shape[1] ** 0.5) - 1
+
+    def detach(self) -> "Gaussians":
+        """A copy without autograd history."""
+        return Gaussians(**{f.name: getattr(self, f.name).detach() for f in fields(self)})
+
+
+# --------------------------------------------------------------------------------------------------
+# Rotations
+def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+    """[...,3,3] rotation matrices of unit quaternions [...,4] (w,x,y,z)."""
+    w, x, y, z = quats.unbind(-1)
+    rows = (
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    )
+    return torch.stack(rows, dim=-1).reshape(*quats.shape[:-1], 3, 3)
+
+
+def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
+    """Unit quaternions [...,4] (w,x,y,z, w >= 0) of rotation matrices [...,3,3] (Shepperd's method).
+
+    The largest of the four ``4 q_i^2`` candidates picks the numerically stable formula per matrix.
+    """
+    m = R.reshape(-1, 3, 3)
+    m00, m11, m22 = m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]
+    squares = torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
+    candidates = torch.stack([
+        torch.stack([squares[:, 0], m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], -1),
+        torch.stack([m[:, 2, 1] - m[:, 1, 2], squares[:, 1], m[:, 1, 0] + m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0]], -1),
+        torch.stack([m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] + m[:, 0, 1], squares[:, 2], m[:, 2, 1] + m[:, 1, 2]], -1),
+        torch.stack([m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 2, 1] + m[:, 1, 2], squares[:, 3]], -1),
+    ], dim=1)
+    best = squares.argmax(dim=-1)
+    q = candidates[torch.arange(m.shape[0], device=m.device), best]
+    q = q / (2.0 * squares.gather(1, best[:, None]).clamp_min(1e-12).sqrt())
+    q = torch.where(q[:, :1] < 0, -q, q)
+    return q.reshape(*R.shape[:-2], 4)
+
+
+def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product a * b of quaternions [...,4] (w,x,y,z): the rotation b followed by a."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ], dim=-1)
+
+
+# --------------------------------------------------------------------------------------------------
+# Spherical harmonics
+def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
+    """[...,(degree+1)^2] real SH basis of 3DGS (gsplat ordering and signs) at unit directions [...,3]."""
+    if not 0 <= degree <= 3:
+        raise InputError(f"SH degree must be 0..3, got {degree}")
+    x, y, z = dirs.unbind(-1)
+    out = [torch.full_like(x, SH_C0)]
+    if degree >= 1:
+        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        out += [SH_C2[0] * x * y, SH_C2[1] * y * z, SH_C2[2] * (2 * zz - xx - yy), SH_C2[3] * x * z,
+                SH_C2[4] * (xx - yy)]
+    if degree >= 3:
+        out += [SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * x * y * z, SH_C3[2] * y * (4 * zz - xx - yy),
+                SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * x * (4 * zz - xx - yy),
+                SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3 * yy)]
+    return torch.stack(out, dim=-1)
+
+
+def _fibonacci_directions(count: int) -> torch.Tensor:
+    """[count,3] float64 unit directions spread evenly over the sphere."""
+    i = torch.arange(count, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * i / count
+    phi = i * torch.pi * (3.0 - 5.0**0.5)
+    r = (1.0 - z * z).sqrt()
+    return torch.stack([r * phi.cos(), r * phi.sin(), z], dim=-1)
+
+
+def sh_rotation_matrices(R: torch.Tensor, degree: int) -> torch.Tensor:
+    """[V,K,K] block-diagonal matrices M with ``sh_rotated = M @ sh`` for rotations R [V,3,3].
+
+    ``f'(d) = f(R^T d)``: evaluating the rotated coefficients at ``R d`` equals the original at ``d``.
+    Each degree's block is solved by least squares over 64 well-spread directions (exact, since the
+    degree-l basis spans a rotation-invariant space); computed in float64.
+    """
+    dirs = _fibonacci_directions(64).to(R.device)
+    basis = sh_basis(degree, dirs)  # [P,K]
+    rotated = sh_basis(degree, dirs @ R.to(torch.float64))  # [V,P,K]: Y(R^T d) as rows d^T R
+    M = torch.linalg.pinv(basis) @ rotated  # [V,K,K]: least-squares solution of basis @ M = rotated
+    mask = torch.block_diag(*[torch.ones(2 * l + 1, 2 * l + 1, dtype=torch.float64) for l in range(degree + 1)])
+    return (M * mask.to(R.device)).to(R.dtype)
+
+
+def rotate_sh(sh: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    """SH coefficients [V,...,K,3] expressed in frames rotated by R [V,3,3] (camera -> world for R = R_c2w)."""
+    degree = round(sh.shape[-2] ** 0.5) - 1
+    if degree == 0:
+        return sh
+    M = sh_rotation_matrices(R, degree).to(sh.dtype)
+    M = M.reshape(M.shape[0], *([1] * (sh.dim() - 3)), *M.shape[1:])
+    return M @ sh
+
+
+# --------------------------------------------------------------------------------------------------
+# Eq. 10
+def map_to_world(pixels: PixelGaussians, depth: torch.Tensor, cameras: Cameras) -> Gaussians:
+    """Eq. 10: pixel-aligned camera-space Gaussians [V,H,W,...] and depth [V,H,W] -> world :class:`Gaussians`.
+
+    N = V*H*W Gaussians ordered view-major, then row, then column.
+    """
+    V, H, W = depth.shape
+    if (H, W) != (cameras.height, cameras.width) or V != cameras.num_views:
+        raise InputError(f"depth must be [V={cameras.num_views},{cameras.height},{cameras.width}] to match the "
+                         f"cameras, got {tuple(depth.shape)}")
+    c2w = cameras.c2w.to(depth.dtype)
+    rot = c2w[:, :3, :3]
+    focal = torch.stack([cameras.K[:, 0, 0], cameras.K[:, 1, 1]], dim=-1).to(depth.dtype)  # [V,2]
+    shift = pixels.offsets.to(depth.dtype) * depth[..., None] / focal[:, None, None, :]  # [V,H,W,2] camera xy
+    shift3 = torch.cat([shift, torch.zeros_like(shift[..., :1])], dim=-1)
+    means = unproject(depth, cameras) + torch.einsum("vij,vhwj->vhwi", rot, shift3)
+    cam_quats = rotmat_to_quat(rot)[:, None, None, :].to(pixels.quats.dtype)
+    quats = quat_multiply(cam_quats.expand_as(pixels.quats), pixels.quats)
+    sh = rotate_sh(pixels.sh, rot.to(pixels.sh.dtype))
+    return Gaussians(
+        means=means.reshape(-1, 3),
+        quats=quats.reshape(-1, 4),
+        scales=pixels.scales.reshape(-1, 3),
+        opacities=pixels.opacities.reshape(-1),
+        sh=sh.reshape(-1, sh.shape[-2], 3),
+    )

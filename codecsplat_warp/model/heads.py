@@ -1,0 +1,143 @@
+"""Depth head (paper Eqs. 7-8, 13) and Gaussian head (Eq. 9).
+
+Normalised inverse depth ``S`` in [0, 1] maps to metric depth inside the per-view bounds:
+``D = 1 / (1/f + S (1/n - 1/f))`` (S = 0 is the far bound f, S = 1 the near bound n), and back by
+``S = (1/D - 1/f) / (1/n - 1/f)`` (Eq. 13).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from ..cameras import Cameras
+from ..errors import InputError
+from .config import FEATURE_STRIDE, ModelConfig
+from .layers import conv3x3, conv_stack
+
+SH_HIGHER_ORDER_SCALE = 0.1
+"""Raw SH outputs of degree l >= 1 are multiplied by ``0.1 * 0.25**l`` (DepthSplat's sh_mask): starts view-independent."""
+
+
+def _bounds(near: torch.Tensor, far: torch.Tensor, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inverse near/far [V] reshaped to broadcast against a [V,...] tensor ``like``."""
+    if near.shape != (like.shape[0],) or far.shape != (like.shape[0],):
+        raise InputError(f"near/far must have shape [{like.shape[0]}] (one bound per view), "
+                         f"got {tuple(near.shape)} and {tuple(far.shape)}")
+    view = (-1,) + (1,) * (like.dim() - 1)
+    return (1.0 / near).reshape(view).to(like.dtype), (1.0 / far).reshape(view).to(like.dtype)
+
+
+def depth_from_normalized(s: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
+    """Eq. 8: metric depth [V,...] from normalised inverse depth ``s`` [V,...] in [0,1] and bounds near/far [V]."""
+    inv_near, inv_far = _bounds(near, far, s)
+    return 1.0 / (inv_far + s * (inv_near - inv_far))
+
+
+def normalized_from_depth(depth: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
+    """Eq. 13: normalised inverse depth S_enc [V,...] of metric depth [V,...] (0 at far, 1 at near)."""
+    inv_near, inv_far = _bounds(near, far, depth)
+    return (1.0 / depth - inv_far) / (inv_near - inv_far)
+
+
+def _check_feature_grid(feature: torch.Tensor, height: int, width: int) -> None:
+    """InputError unless ``feature`` [V,C,h,w] is on the 1/FEATURE_STRIDE grid of a height x width image."""
+    if feature.dim() != 4 or feature.shape[-2:] != (height // FEATURE_STRIDE, width // FEATURE_STRIDE):
+        raise InputError(f"feature must be [V,C,{height // FEATURE_STRIDE},{width // FEATURE_STRIDE}] for a "
+                         f"{height}x{width} image, got {tuple(feature.shape)}")
+
+
+class SubPixelUpsample(nn.Module):
+    """Learned x FEATURE_STRIDE upsampling: conv3x3 to ``out * stride**2`` channels, then pixel shuffle."""
+
+    def __init__(self, in_channels: int, out_channels: int):
+        super().__init__()
+        self.conv = conv3x3(in_channels, out_channels * FEATURE_STRIDE**2)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.pixel_shuffle(self.conv(x), FEATURE_STRIDE)
+
+
+class DepthHead(nn.Module):
+    """Eqs. 7-8: normalised inverse depth S = sigmoid(DepthHead(F)) and metric depth D from a feature.
+
+    Used by the decoder on the reconstructed feature (stage 2); the codec-free path uses D_enc.
+    """
+
+    def __init__(self, config: ModelConfig):
+        super().__init__()
+        c = config.head_channels
+        self.body = nn.Sequential(conv_stack(config.feature_channels, c, c, blocks=1), SubPixelUpsample(c, c),
+                                  nn.ReLU(inplace=False), conv3x3(c, 1))
+
+    def forward(self, feature: torch.Tensor, cameras: Cameras) -> tuple[torch.Tensor, torch.Tensor]:
+        """feature [V,C_F,h,w] -> (S [V,H,W] in (0,1), depth [V,H,W] in (near, far)) at the cameras' size."""
+        _check_feature_grid(feature, cameras.height, cameras.width)
+        s = torch.sigmoid(self.body(feature)[:, 0].float())
+        return s, depth_from_normalized(s, cameras.near, cameras.far)
+
+
+@dataclass
+class PixelGaussians:
+    """Per-pixel Gaussian attributes in CAMERA space, before the 2D->3D map (Eq. 9 output).
+
+    Attributes:
+        opacities: [V,H,W] in (0,1).
+        offsets: [V,H,W,2] sub-pixel centre offsets (du, dv) in pixels.
+        scales: [V,H,W,3] standard deviations in world units (pixel footprint times depth / focal).
+        quats: [V,H,W,4] unit quaternions (w,x,y,z) rotating the Gaussian frame into the camera frame.
+        sh: [V,H,W,K,3] SH colour coefficients w.r.t. camera-frame view directions, K = (degree+1)^2.
+    """
+
+    opacities: torch.Tensor
+    offsets: torch.Tensor
+    scales: torch.Tensor
+    quats: torch.Tensor
+    sh: torch.Tensor
+
+
+class GaussianHead(nn.Module):
+    """Eq. 9: per-pixel Gaussian attributes from a feature [V,C_F,h,w] and depth [V,H,W].
+
+    The 1/2-resolution feature is upsampled to the image grid by a learned sub-pixel convolution, the
+    normalised inverse depth is appended, and a conv stack predicts 1 + 2 + 3 + 4 + 3K raw channels.
+    """
+
+    def __init__(self, config: ModelConfig):
+        super().__init__()
+        self.config = config
+        self.num_sh = (config.sh_degree + 1) ** 2
+        self.raw_channels = 1 + 2 + 3 + 4 + 3 * self.num_sh
+        c = config.head_channels
+        self.upsample = SubPixelUpsample(config.feature_channels, c)
+        self.body = conv_stack(c + 1, c, self.raw_channels, blocks=1)
+        degrees = torch.cat([torch.full((2 * l + 1,), float(l)) for l in range(config.sh_degree + 1)])
+        sh_scale = torch.where(degrees > 0, SH_HIGHER_ORDER_SCALE * 0.25 ** degrees, torch.ones_like(degrees))
+        self.register_buffer("sh_scale", sh_scale, persistent=False)
+
+    def forward(self, feature: torch.Tensor, depth: torch.Tensor, cameras: Cameras) -> PixelGaussians:
+        """feature [V,C_F,h,w], depth [V,H,W] (metric, in the cameras' bounds) -> :class:`PixelGaussians`."""
+        _check_feature_grid(feature, depth.shape[1], depth.shape[2])
+        x = self.upsample(feature)
+        s = normalized_from_depth(depth, cameras.near, cameras.far).clamp(0.0, 1.0)
+        raw = self.body(torch.cat([x, s[:, None].to(x.dtype)], dim=1)).permute(0, 2, 3, 1).float()
+        return self._activate(raw, depth, cameras)
+
+    def _activate(self, raw: torch.Tensor, depth: torch.Tensor, cameras: Cameras) -> PixelGaussians:
+        cfg = self.config
+        opacity_raw, offset_raw, scale_raw, quat_raw, sh_raw = raw.split([1, 2, 3, 4, 3 * self.num_sh], dim=-1)
+        focal = 0.5 * (cameras.K[:, 0, 0] + cameras.K[:, 1, 1])
+        footprint = (depth / focal.reshape(-1, 1, 1).to(depth.dtype))[..., None]
+        scale_px = cfg.scale_min_px + (cfg.scale_max_px - cfg.scale_min_px) * torch.sigmoid(scale_raw)
+        identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=raw.dtype, device=raw.device)
+        sh = sh_raw.reshape(*sh_raw.shape[:-1], 3, self.num_sh).transpose(-1, -2) * self.sh_scale[:, None]
+        return PixelGaussians(
+            opacities=torch.sigmoid(opacity_raw[..., 0]),
+            offsets=cfg.max_offset_px * torch.tanh(offset_raw),
+            scales=scale_px * footprint,
+            quats=F.normalize(quat_raw + identity, dim=-1, eps=1e-6),
+            sh=sh,
+        )

@@ -1,0 +1,88 @@
+"""Stage-1 trainer: checkpoint sharding, atomic/resumable checkpoints (same next-step loss), CLI."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import LPIPS_WEIGHTS as WEIGHTS
+from conftest import needs_lpips
+
+# `train` is a top-level folder of the repository (pytest's pythonpath = ["."]), not an installed package.
+from train.checkpoint import (
+    MAX_FILE_BYTES, join_tensors, latest_checkpoint, load_checkpoint, save_checkpoint, split_tensors,
+)
+from train.data import split_context_targets
+from train.stage1 import TrainConfig, lr_factor, make_optimizer, parse_args, train
+
+from codecsplat_warp.model import CodecSplat, get_preset  # noqa: E402
+
+
+
+def test_split_and_join_tensors_respect_the_file_limit():
+    tensors = {"big": torch.arange(1000, dtype=torch.float32).reshape(10, 100), "a": torch.ones(3), "b": torch.zeros(50)}
+    shards, cut = split_tensors(tensors, max_bytes=1024)
+    assert all(sum(t.numel() * t.element_size() for t in s.values()) <= 1024 for s in shards)
+    assert cut == {"big": [10, 100]}
+    joined = join_tensors({k: v for s in shards for k, v in s.items()}, cut)
+    assert set(joined) == set(tensors) and all(torch.equal(joined[k], tensors[k]) for k in tensors)
+
+
+def test_checkpoint_round_trip_shards_and_ignores_partial_writes(tmp_path):
+    config = TrainConfig(steps=10, warmup_steps=2)
+    model = CodecSplat(get_preset("tiny"))
+    optimizer, scheduler = make_optimizer(model, config)
+    model(torch.rand(2, 3, 32, 48), _cameras())["F_c"].square().mean().backward()
+    optimizer.step()
+    scheduler.step()
+    folder = save_checkpoint(tmp_path, 1, model, optimizer, scheduler, {"note": 1}, max_bytes=64 * 1024)
+    assert len(list(folder.glob("model-*.safetensors"))) > 1
+    assert all(f.stat().st_size <= 64 * 1024 for f in folder.iterdir() if f.suffix == ".safetensors")
+    (tmp_path / "checkpoints" / "step-00000002.tmp").mkdir()  # a run killed while writing step 2
+    assert latest_checkpoint(tmp_path) == folder
+    (tmp_path / "checkpoints" / "latest").unlink()
+    assert latest_checkpoint(tmp_path) == folder
+
+    clone = CodecSplat(get_preset("tiny"))
+    opt2, sched2 = make_optimizer(clone, config)
+    assert load_checkpoint(folder, clone, opt2, sched2) == 1
+    for (name, a), b in zip(model.state_dict().items(), clone.state_dict().values()):
+        assert torch.equal(a, b), name
+    s1, s2 = optimizer.state_dict()["state"], opt2.state_dict()["state"]
+    assert all(torch.equal(s1[i]["exp_avg_sq"], s2[i]["exp_avg_sq"]) for i in s1)
+    assert sched2.last_epoch == scheduler.last_epoch and MAX_FILE_BYTES == 16 * 1024 * 1024
+
+
+@needs_lpips
+def test_resumed_run_gives_the_same_next_step_loss(tmp_path):
+    common = dict(preset="tiny", data="procedural", device="cpu", workers=0, warmup_steps=10, lpips_weights=str(WEIGHTS),
+                  checkpoint_every=2, log_every=1, seed=3)
+    train(TrainConfig(out=str(tmp_path / "a"), steps=2, **common), progress=False)
+    resumed = train(TrainConfig(out=str(tmp_path / "a"), steps=3, **common), progress=False)
+    direct = train(TrainConfig(out=str(tmp_path / "b"), steps=3, **common), progress=False)
+    assert (resumed["resumed_from"], direct["resumed_from"], resumed["step"]) == (2, 0, 3)
+    assert resumed["loss"] == pytest.approx(direct["loss"], rel=1e-5)
+    assert (tmp_path / "a" / "checkpoints" / "step-00000003" / "checkpoint.json").is_file()
+    assert list((tmp_path / "a" / "tensorboard").glob("events.*"))
+
+
+def test_lr_schedule_and_cli():
+    assert lr_factor(0, 10, 100) == pytest.approx(0.1)
+    assert lr_factor(10, 10, 100) == pytest.approx(1.0)
+    assert lr_factor(100, 10, 100) == pytest.approx(0.1)
+    config = parse_args(["--preset", "tiny", "--steps", "5", "--lr", "3e-4"])
+    assert (config.preset, config.steps, config.lr) == ("tiny", 5, 3e-4)
+
+
+def test_context_and_target_split_surrounds_targets():
+    cams = _cameras(6)
+    context, targets = split_context_targets(cams, 0, 2, 4)
+    assert context == [0, 5] and sorted(targets) == [1, 2, 3, 4]
+
+
+def _cameras(n: int = 2):
+    from codecsplat_warp.cameras import Cameras, intrinsics_matrix
+
+    K = intrinsics_matrix(torch.full((n,), 40.0), torch.full((n,), 40.0), torch.full((n,), 24.0), torch.full((n,), 16.0))
+    c2w = torch.eye(4).repeat(n, 1, 1)
+    c2w[:, 0, 3] = 0.1 * torch.arange(n)
+    return Cameras.from_c2w(K, c2w, torch.full((n,), 1.0), torch.full((n,), 10.0), 48, 32)

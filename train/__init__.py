@@ -1,0 +1,1 @@
+"""Training entry points (run from the repository root): ``python -m train.stage1``."""

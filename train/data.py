@@ -1,0 +1,144 @@
+"""Training samples for stage 1: context views, target views and their cameras, from procedural or real scenes.
+
+A *source* is a function ``source(index) -> TrainingSample`` that is deterministic in ``index`` (a global
+sample counter: step * world_size + rank), so a resumed or multi-GPU run draws exactly the samples it
+would have drawn without interruption and no sampler state needs checkpointing.
+"""
+
+from __future__ import annotations
+
+import pathlib
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+
+from codecsplat_warp.cameras import Cameras
+from codecsplat_warp.errors import DataError, InputError
+from codecsplat_warp.model.config import ModelConfig
+
+
+@dataclass
+class TrainingSample:
+    """One scene's training example.
+
+    Attributes:
+        context_images: float32 [V,3,H,W] in [0,1]; context_cameras: V cameras at H x W.
+        target_images: float32 [T,3,H,W] in [0,1]; target_cameras: T cameras at H x W.
+        key: scene name (for logs).
+    """
+
+    context_images: torch.Tensor
+    context_cameras: Cameras
+    target_images: torch.Tensor
+    target_cameras: Cameras
+    key: str
+
+    def to(self, device) -> "TrainingSample":
+        return TrainingSample(self.context_images.to(device), self.context_cameras.to(device),
+                              self.target_images.to(device), self.target_cameras.to(device), self.key)
+
+
+Source = Callable[[int], TrainingSample]
+
+
+def split_context_targets(cameras: Cameras, anchor: int, num_context: int, num_target: int) -> tuple[list[int], list[int]]:
+    """Context and target view indices among the ``num_context + num_target`` views nearest to ``anchor``.
+
+    The views are ordered by camera-centre distance to the anchor; the context takes evenly spaced ranks
+    including the nearest (the anchor) and the farthest, the targets the ranks in between, so targets
+    lie among the context views rather than outside them.
+    """
+    total = num_context + num_target
+    if cameras.num_views < total:
+        raise DataError(f"scene has {cameras.num_views} views, need {total} ({num_context} context + {num_target} target)")
+    centers = cameras.centers.double()
+    order = torch.argsort((centers - centers[anchor]).norm(dim=-1), stable=True)[:total].tolist()
+    ranks = torch.linspace(0, total - 1, num_context).round().long().tolist()
+    context = [order[r] for r in ranks]
+    targets = [order[r] for r in range(total) if r not in ranks]
+    return context, targets
+
+
+def _sample_from_scene(images: torch.Tensor, cameras: Cameras, key: str, context: list[int],
+                       targets: list[int]) -> TrainingSample:
+    pixels = images.float() / 255.0
+    return TrainingSample(pixels[context], cameras.select(context).to(dtype=torch.float32),
+                          pixels[targets], cameras.select(targets).to(dtype=torch.float32), key)
+
+
+def procedural_source(config: ModelConfig, seed: int) -> Source:
+    """Source of procedural scenes (:mod:`codecsplat_warp.data.procedural`), one fresh scene per index.
+
+    Views along the scene's trajectory: context at evenly spaced positions (first and last included),
+    targets in between.
+    """
+    from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
+
+    total = config.num_views + config.num_target_views
+    proc = ProceduralConfig(width=config.width, height=config.height, num_views=total)
+
+    def source(index: int) -> TrainingSample:
+        scene = procedural_scene(seed * 1_000_003 + index, proc)
+        context, targets = split_context_targets(scene.cameras, 0, config.num_views, config.num_target_views)
+        return _sample_from_scene(scene.images, scene.cameras, scene.key, context, targets)
+
+    return source
+
+
+def real_scene_source(config: ModelConfig, root, seed: int, scene_names: list[str] | None = None) -> Source:
+    """Source of real scenes under ``root`` (folders with ``cameras.json``; see the data README).
+
+    Each scene is decoded, resized and centre-cropped to the preset size once and kept in memory (uint8).
+    Index i picks a scene and an anchor view from a generator seeded by (seed, i); context and targets are
+    the anchor's nearest views (:func:`split_context_targets`). The scenes keep their own near/far.
+    """
+    from codecsplat_warp.data.preprocess import DatasetConfig, preprocess_scene
+    from codecsplat_warp.data.scene_json import load_scene_json
+
+    root = pathlib.Path(root)
+    names = scene_names if scene_names is not None else sorted(p.parent.name for p in root.glob("*/cameras.json"))
+    if not names:
+        raise DataError(f"no scenes (*/cameras.json) under {root}")
+    protocol = DatasetConfig(width=config.width, height=config.height, near=0.0, far=0.0)
+    cache: dict[str, tuple[torch.Tensor, Cameras]] = {}
+
+    def scene(name: str) -> tuple[torch.Tensor, Cameras]:
+        if name not in cache:
+            loaded = preprocess_scene(load_scene_json(root / name / "cameras.json"), protocol,
+                                      use_config_depth_range=False)
+            cache[name] = (loaded.images, loaded.cameras)
+        return cache[name]
+
+    def source(index: int) -> TrainingSample:
+        generator = torch.Generator().manual_seed(seed * 1_000_003 + index)
+        name = names[int(torch.randint(len(names), (), generator=generator))]
+        images, cameras = scene(name)
+        anchor = int(torch.randint(cameras.num_views, (), generator=generator))
+        context, targets = split_context_targets(cameras, anchor, config.num_views, config.num_target_views)
+        return _sample_from_scene(images, cameras, name, context, targets)
+
+    return source
+
+
+def make_source(data: str, config: ModelConfig, seed: int, scene_names: list[str] | None = None) -> Source:
+    """``procedural`` or a directory of real scenes -> a :data:`Source`."""
+    if data == "procedural":
+        return procedural_source(config, seed)
+    if not pathlib.Path(data).is_dir():
+        raise InputError(f"data must be 'procedural' or a directory of scenes, got {data!r}")
+    return real_scene_source(config, data, seed, scene_names)
+
+
+class StepDataset(torch.utils.data.Dataset):
+    """Map-style view of a source for a DataLoader (workers build samples in parallel)."""
+
+    def __init__(self, source: Source, length: int):
+        self.source = source
+        self.length = length
+
+    def __len__(self) -> int:
+        return self.length
+
+    def __getitem__(self, index: int) -> TrainingSample:
+        return self.source(int(index))

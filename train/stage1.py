@@ -1,0 +1,224 @@
+"""Stage-1 training (paper §3.5): the codec-free CodecSplat generator, rendered at target views.
+
+Loss: MSE + 0.05 * LPIPS-VGG between rendered and true target images. AdamW (lr 1e-4, weight decay 0.01),
+linear warm-up then cosine decay to 10 %, gradient-norm clipping, bf16 autocast on CUDA (fp32 on CPU).
+Resumable checkpoints (see :mod:`train.checkpoint`), TensorBoard logs and a tqdm bar under ``--out``.
+
+    python -m train.stage1 --preset re10k --data procedural --steps 100000 --out runs/stage1-re10k
+    torchrun --nproc_per_node 4 -m train.stage1 ...        # DDP, one scene per GPU per step
+
+Rerunning the same command after an interruption continues from the last checkpoint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import pathlib
+from dataclasses import asdict, dataclass, fields
+
+import torch
+import torch.distributed as dist
+from torch.nn import functional as F
+from tqdm import tqdm
+
+from codecsplat_warp.device import resolve_device
+from codecsplat_warp.errors import InputError
+from codecsplat_warp.metrics import LPIPS, WEIGHTS_ENV
+from codecsplat_warp.model import CodecSplat, ModelConfig, get_preset
+
+from .checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from .data import Source, StepDataset, TrainingSample, make_source
+
+REPO_ROOT = pathlib.Path(__file__).resolve().parents[1]
+DEFAULT_LPIPS_DIR = REPO_ROOT.parent / "shared" / "weights"
+"""LPIPS weights used when neither ``--lpips-weights`` nor ``$CODECSPLAT_LPIPS_WEIGHTS`` is given."""
+
+
+@dataclass
+class TrainConfig:
+    """Stage-1 options (each is a ``--flag`` of the command line, underscores as dashes)."""
+
+    preset: str = "re10k"
+    data: str = "procedural"
+    out: str = "runs/stage1"
+    steps: int = 100_000
+    lr: float = 1e-4
+    weight_decay: float = 0.01
+    warmup_steps: int = 2000
+    grad_clip: float = 1.0
+    lpips_weight: float = 0.05
+    lpips_weights: str | None = None
+    checkpoint_every: int = 1000
+    keep_checkpoints: int = 2
+    log_every: int = 20
+    seed: int = 0
+    device: str = "auto"
+    workers: int = 4
+
+
+def lr_factor(step: int, warmup: int, total: int) -> float:
+    """Learning-rate multiplier: linear warm-up over ``warmup`` steps, then cosine from 1 to 0.1."""
+    if step < warmup:
+        return (step + 1) / warmup
+    progress = min(1.0, (step - warmup) / max(1, total - warmup))
+    return 0.1 + 0.9 * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+
+def psnr(prediction: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean PSNR (dB) over images [B,3,H,W] in [0,1]."""
+    mse = ((prediction.float() - target.float()) ** 2).mean(dim=(1, 2, 3)).clamp_min(1e-10)
+    return (-10.0 * torch.log10(mse)).mean()
+
+
+def stage1_loss(model: torch.nn.Module, lpips: LPIPS, sample: TrainingSample, lpips_weight: float) -> tuple[torch.Tensor, dict]:
+    """Eq. 12 with D_render = MSE + lpips_weight * LPIPS-VGG; returns (loss, float metrics).
+
+    ``model`` may be the DDP wrapper; rendering uses the bare module.
+    """
+    bare = model.module if hasattr(model, "module") else model
+    device = sample.context_images.device
+    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda"):
+        out = model(sample.context_images, sample.context_cameras)
+    rgb = bare.render(out["gaussians"], sample.target_cameras)["rgb"]
+    mse = F.mse_loss(rgb, sample.target_images)
+    perceptual = lpips(rgb, sample.target_images).mean()
+    loss = mse + lpips_weight * perceptual
+    return loss, {"loss": loss.item(), "mse": mse.item(), "lpips": perceptual.item(),
+                  "psnr": float(psnr(rgb.detach(), sample.target_images))}
+
+
+def make_optimizer(model: torch.nn.Module, config: TrainConfig):
+    """AdamW and its warm-up/cosine LambdaLR scheduler."""
+    params = [p for p in model.parameters() if p.requires_grad]
+    optimizer = torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda step: lr_factor(step, config.warmup_steps, config.steps))
+    return optimizer, scheduler
+
+
+def train_step(model, lpips, optimizer, scheduler, sample: TrainingSample, config: TrainConfig) -> dict:
+    """One optimisation step (forward, backward, clip, AdamW, scheduler); returns its metrics."""
+    optimizer.zero_grad(set_to_none=True)
+    loss, metrics = stage1_loss(model, lpips, sample, config.lpips_weight)
+    loss.backward()
+    metrics["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip))
+    optimizer.step()
+    scheduler.step()
+    metrics["lr"] = scheduler.get_last_lr()[0]
+    return metrics
+
+
+def _distributed() -> tuple[int, int, int]:
+    """(rank, world_size, local_rank); initialises the process group when WORLD_SIZE > 1 (torchrun)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return 0, 1, 0
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    if torch.cuda.is_available():
+        torch.cuda.set_device(local_rank)
+    dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    return dist.get_rank(), world, local_rank
+
+
+def _lpips_dir(config: TrainConfig) -> str:
+    if config.lpips_weights:
+        return config.lpips_weights
+    return os.environ.get(WEIGHTS_ENV) or str(DEFAULT_LPIPS_DIR)
+
+
+def train(config: TrainConfig, source: Source | None = None, model_config: ModelConfig | None = None,
+          progress: bool = True) -> dict:
+    """Run (or resume) stage 1 until ``config.steps``; returns the metrics of the last step run
+    (with ``step`` and ``resumed_from``, the step of the checkpoint it started from; empty if none was run).
+
+    Args:
+        config: options; ``config.out`` holds checkpoints, TensorBoard logs and ``config.json``.
+        source: sample source (default: :func:`train.data.make_source` of ``config.data``).
+        model_config: network sizes (default: the ``config.preset`` preset).
+        progress: show a tqdm bar on rank 0.
+    """
+    rank, world, local_rank = _distributed()
+    device = resolve_device(config.device)
+    if device.type == "cuda" and world > 1:
+        device = torch.device("cuda", local_rank)
+    model_config = model_config or get_preset(config.preset)
+    source = source or make_source(config.data, model_config, config.seed)
+    out = pathlib.Path(config.out)
+    torch.manual_seed(config.seed + rank)
+
+    model = CodecSplat(model_config).to(device)
+    optimizer, scheduler = make_optimizer(model, config)
+    start = 0
+    checkpoint = latest_checkpoint(out)
+    if checkpoint is not None:
+        start = load_checkpoint(checkpoint, model, optimizer, scheduler)
+    lpips = LPIPS("vgg", _lpips_dir(config)).to(device)
+    trained = torch.nn.parallel.DistributedDataParallel(
+        model, device_ids=[local_rank] if device.type == "cuda" else None) if world > 1 else model
+
+    loader = _loader(source, start, config.steps, rank, world, config.workers if device.type == "cuda" else 0)
+    writer = None
+    if rank == 0:
+        from torch.utils.tensorboard import SummaryWriter
+
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "config.json").write_text(json.dumps({"train": asdict(config), "model": model_config.to_dict()}, indent=1))
+        writer = SummaryWriter(str(out / "tensorboard"), purge_step=start)
+    bar = tqdm(total=config.steps, initial=start, disable=not progress or rank != 0, desc="stage1", dynamic_ncols=True)
+    metrics: dict = {}
+    extra = {"train": asdict(config), "model": model_config.to_dict()}
+    try:
+        for step, sample in zip(range(start, config.steps), loader):
+            metrics = train_step(trained, lpips, optimizer, scheduler, sample.to(device), config)
+            metrics.update(step=step + 1, resumed_from=start)
+            bar.update(1)
+            bar.set_postfix(loss=f"{metrics['loss']:.4f}", psnr=f"{metrics['psnr']:.2f}")
+            if writer is not None and (step + 1) % config.log_every == 0:
+                for name in ("loss", "mse", "lpips", "psnr", "grad_norm", "lr"):
+                    writer.add_scalar(f"train/{name}", metrics[name], step + 1)
+            if (step + 1) % config.checkpoint_every == 0 or step + 1 == config.steps:
+                if rank == 0:
+                    save_checkpoint(out, step + 1, model, optimizer, scheduler, extra, keep=config.keep_checkpoints)
+                if world > 1:
+                    dist.barrier()
+    finally:
+        bar.close()
+        if writer is not None:
+            writer.close()
+        if world > 1:
+            dist.destroy_process_group()
+    return metrics
+
+
+def _loader(source: Source, start: int, steps: int, rank: int, world: int, workers: int):
+    """Samples for steps start..steps-1 of this rank (global index step * world + rank), prefetched by workers."""
+    indices = [step * world + rank for step in range(start, steps)]
+    dataset = StepDataset(source, steps * world)
+    return torch.utils.data.DataLoader(dataset, sampler=indices, batch_size=None, num_workers=workers,
+                                       persistent_workers=False, prefetch_factor=2 if workers else None)
+
+
+def parse_args(argv: list[str] | None = None) -> TrainConfig:
+    """Command line -> :class:`TrainConfig` (every field is a flag)."""
+    parser = argparse.ArgumentParser(prog="python -m train.stage1", description=__doc__.split("\n\n")[0])
+    for field in fields(TrainConfig):
+        kind = {"int": int, "float": float}.get(str(field.type), str)
+        parser.add_argument("--" + field.name.replace("_", "-"), type=kind, default=field.default)
+    args = parser.parse_args(argv)
+    config = TrainConfig(**vars(args))
+    if config.steps < 1 or config.checkpoint_every < 1 or config.log_every < 1:
+        raise InputError("--steps, --checkpoint-every and --log-every must be >= 1")
+    return config
+
+
+def main(argv: list[str] | None = None) -> None:
+    metrics = train(parse_args(argv))
+    if int(os.environ.get("RANK", "0")) == 0 and metrics:
+        print(json.dumps(metrics))
+
+
+if __name__ == "__main__":
+    main()
