@@ -17,7 +17,7 @@ Conventions (used by every kernel, op, loader and the bitstream):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import torch
 
@@ -152,21 +152,27 @@ class Cameras:
     # ----------------------------------------------------------------------------------------------
     # Transformations (each returns new, validated Cameras)
     def to(self, device=None, dtype: torch.dtype | None = None) -> "Cameras":
-        """Copy to another device and/or float dtype."""
+        """Copy to another device and/or float dtype (no copy when nothing changes)."""
+        if (device is None or torch.device(device) == self.device) and (dtype is None or dtype == self.dtype):
+            return self
         move = lambda t: t.to(device=device, dtype=dtype)  # noqa: E731
-        return replace(self, K=move(self.K), w2c=move(self.w2c), near=move(self.near), far=move(self.far))
+        return self._derive(K=move(self.K), w2c=move(self.w2c), near=move(self.near), far=move(self.far))
 
     def select(self, index) -> "Cameras":
         """The cameras at ``index`` (int list, slice or tensor), as a new batch."""
         if isinstance(index, int):
             index = [index]
-        return replace(self, K=self.K[index], w2c=self.w2c[index], near=self.near[index], far=self.far[index])
+        return self._derive(K=self.K[index], w2c=self.w2c[index], near=self.near[index], far=self.far[index])
 
     def rescaled(self, width: int, height: int) -> "Cameras":
         """The same cameras for an image resampled to ``width`` x ``height`` (e.g. a 1/4 feature grid)."""
+        if (width, height) == (self.width, self.height):
+            return self
+        if width < 1 or height < 1:
+            raise CameraError(f"image size must be positive, got width={width}, height={height}")
         sx, sy = width / self.width, height / self.height
         scale = torch.tensor([sx, sy, 1.0], dtype=self.dtype, device=self.device)
-        return replace(self, K=self.K * scale[None, :, None], width=width, height=height)
+        return self._derive(K=self.K * scale[None, :, None], width=int(width), height=int(height))
 
     def cropped(self, left: int, top: int, width: int, height: int) -> "Cameras":
         """The same cameras for the crop [left, left+width) x [top, top+height) of the image."""
@@ -175,7 +181,15 @@ class Cameras:
         K = self.K.clone()
         K[:, 0, 2] -= left
         K[:, 1, 2] -= top
-        return replace(self, K=K, width=width, height=height)
+        return self._derive(K=K, width=int(width), height=int(height))
+
+    def _derive(self, **changes) -> "Cameras":
+        """A copy with ``changes`` applied, skipping validation: only for transformations that keep valid
+        cameras valid (device/dtype moves, view selection, rescaling, cropping). Saves a host sync per op."""
+        new = object.__new__(Cameras)
+        for field in fields(self):
+            object.__setattr__(new, field.name, changes.get(field.name, getattr(self, field.name)))
+        return new
 
     def with_depth_range(self, near, far) -> "Cameras":
         """The same cameras with new near/far bounds ([V] or scalars)."""

@@ -218,6 +218,27 @@ def check_positive(name: str, tensor: torch.Tensor) -> None:
         raise InputError(f"{name} must be > 0 everywhere, {bad} value(s) are not")
 
 
+def check_values(
+    finite: dict[str, torch.Tensor] | None = None, positive: dict[str, torch.Tensor] | None = None
+) -> None:
+    """Finite (and, for ``positive``, > 0) checks of several tensors with ONE device-to-host sync.
+
+    Skipped when validation is off. Raises InputError through :func:`check_finite` / :func:`check_positive`
+    (which name the argument and count the bad values) for the first failing tensor.
+    """
+    if not _validate:
+        return
+    finite, positive = finite or {}, positive or {}
+    flags = [torch.isfinite(t).all() for t in finite.values()]
+    flags += [(torch.isfinite(t) & (t > 0)).all() for t in positive.values()]
+    if not flags or all(torch.stack(flags).tolist()):
+        return
+    for name, t in finite.items():
+        check_finite(name, t)
+    for name, t in positive.items():
+        check_positive(name, t)
+
+
 def _shape_text(shape: Sequence[int | str | None]) -> str:
     return "[" + ",".join("*" if s is None else str(s) for s in shape) + "]"
 

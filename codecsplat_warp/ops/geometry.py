@@ -12,7 +12,7 @@ import torch
 import warp as wp
 
 from ..cameras import Cameras
-from ..device import check_finite, check_positive, check_tensor, common_device, to_warp, warp_scope
+from ..device import check_tensor, check_values, common_device, to_warp, warp_scope
 from ..errors import DeviceMismatchError, InputError
 from ..kernels import reproject as reproject_kernels
 from ..kernels import unproject as unproject_kernels
@@ -36,7 +36,7 @@ def unproject(depth: torch.Tensor, cameras: Cameras) -> torch.Tensor:
         with respect to ``depth``.
     """
     depth = _float_input("depth", depth, ("V", "H", "W"), {"V": cameras.num_views})
-    check_positive("depth", depth)
+    check_values(positive={"depth": depth})
     cams = _cameras_for(cameras, depth, depth.shape[2], depth.shape[1])
     return _Unproject.apply(depth, _intrinsics_vector(cams), cams.c2w.contiguous())
 
@@ -67,8 +67,7 @@ def reproject_average(
     feat = _float_input("feat", feat, ("V", "C", "h", "w"), dims)
     depth = _float_input("depth", depth, ("V", "h", "w"), dims)
     _check_pair(feat=feat, depth=depth)
-    check_finite("feat", feat)
-    check_positive("depth", depth)
+    check_values(finite={"feat": feat}, positive={"depth": depth})
     cams = _cameras_for(cameras, feat, feat.shape[3], feat.shape[2])
     neighbours = _neighbours(neighbours, cams.num_views, feat.device)
     rel = _relative_transforms(cams, neighbours, feat.dtype)
@@ -102,8 +101,7 @@ def plane_sweep_cost_volume(
         candidates = candidates[None].expand(cameras.num_views, -1)
     candidates = _float_input("candidates", candidates, ("V", "D"), dims)
     _check_pair(feat=feat, candidates=candidates)
-    check_finite("feat", feat)
-    check_positive("candidates", candidates)
+    check_values(finite={"feat": feat}, positive={"candidates": candidates})
     cams = _cameras_for(cameras, feat, feat.shape[3], feat.shape[2])
     neighbours = _neighbours(neighbours, cams.num_views, feat.device)
     rel = _relative_transforms(cams, neighbours, feat.dtype)
