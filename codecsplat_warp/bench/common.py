@@ -7,10 +7,10 @@ median of repeated runs; on CUDA each run is bracketed by CUDA events on the cur
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import platform
-import resource
 import statistics
 import time
 from dataclasses import dataclass
@@ -62,15 +62,25 @@ def cuda_peak_bytes(fn: Callable[[], object], device: torch.device) -> int:
 
 
 def rss_peak_growth_bytes(fn: Callable[[], object]) -> int:
-    """Growth of the process's peak resident set while ``fn`` runs (CPU memory; 0 if the peak was already higher).
+    """Peak resident memory while ``fn`` runs, above the resident size before it (CPU memory, Linux).
 
-    Only meaningful in a process whose earlier peak is below what ``fn`` needs: the benchmarks call it first
-    thing in a fresh child process.
+    Resets the kernel's high-water mark first (``/proc/self/clear_refs``), so earlier peaks (imports,
+    input construction) do not hide this one. Counts every allocation: torch's, Warp's and Python's.
     """
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    gc.collect()
+    with open("/proc/self/clear_refs", "w") as fh:
+        fh.write("5")
+    before = _proc_status_kib("VmRSS")
     fn()
-    after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return (after - before) * 1024  # Linux reports KiB
+    return max(0, _proc_status_kib("VmHWM") - before) * 1024
+
+
+def _proc_status_kib(field: str) -> int:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith(field + ":"):
+                return int(line.split()[1])
+    raise OSError(f"{field} not in /proc/self/status")
 
 
 def machine_name(device: torch.device) -> str:

@@ -9,7 +9,6 @@ result against a float64 evaluation of the same op (max abs of the output; relat
 from __future__ import annotations
 
 import argparse
-import multiprocessing
 from dataclasses import dataclass
 
 import torch
@@ -145,16 +144,7 @@ def _float64_reference(shape: Shape, device: torch.device):
 
 
 def _peak_bytes(shape: Shape, impl: str, device: torch.device) -> int:
+    cams, feat, depth, weights = make_inputs(shape, device)
     if device.type == "cuda":
-        cams, feat, depth, weights = make_inputs(shape, device)
         return cuda_peak_bytes(lambda: _forward_backward(impl, cams, feat, depth, weights), device)
-    with multiprocessing.get_context("spawn").Pool(1) as pool:
-        return pool.apply(_cpu_peak_child, (shape, impl))
-
-
-def _cpu_peak_child(shape: Shape, impl: str) -> int:
-    """In a fresh process: warm the op on a tiny input, then measure the peak RSS growth of one fwd+bwd."""
-    tiny = Shape("tiny", shape.views, 2, 4, 4, 16, 16)
-    _forward_backward(impl, *make_inputs(tiny, torch.device("cpu")))
-    cams, feat, depth, weights = make_inputs(shape, torch.device("cpu"))
     return rss_peak_growth_bytes(lambda: _forward_backward(impl, cams, feat, depth, weights))

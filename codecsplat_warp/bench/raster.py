@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import multiprocessing
 import traceback
 from dataclasses import dataclass
 
@@ -192,7 +191,7 @@ def measure_workload(workload: Workload, device: torch.device, reps: int, scale:
         row["intersections"] = meta.intersection_count
         row["fwd_ms"] = time_call(lambda: ours_forward(scene), device, reps).median_ms
         row["fwd_bwd_ms"] = time_call(lambda: ours_forward_backward(scene), device, reps).median_ms
-        row.update(_peak_memory(workload, device, scale, scene))
+        row.update(_peak_memory(device, scene))
     except Exception as exc:  # noqa: BLE001 - a benchmark reports failures and goes on
         row["error"] = f"warp: {type(exc).__name__}: {exc}"
         traceback.print_exc()
@@ -265,7 +264,7 @@ def _import_gsplat(device: torch.device) -> dict | None:
         return {"status": f"not importable ({type(exc).__name__}: {exc})", "rasterization": None}
 
 
-def _peak_memory(workload: Workload, device: torch.device, scale: float, scene: dict) -> dict:
+def _peak_memory(device: torch.device, scene: dict) -> dict:
     if device.type == "cuda":
         wdev = wp.get_device(str(device))
         warp_pool_before = wp.get_mempool_used_mem_high(wdev) if wp.is_mempool_enabled(wdev) else None
@@ -274,15 +273,7 @@ def _peak_memory(workload: Workload, device: torch.device, scale: float, scene: 
         if warp_pool_before is not None:
             result["warp_pool_high_mib"] = wp.get_mempool_used_mem_high(wdev) / 2**20
         return result
-    with multiprocessing.get_context("spawn").Pool(1) as pool:
-        return {"peak_mib": pool.apply(_cpu_peak_child, (workload, scale)) / 2**20}
-
-
-def _cpu_peak_child(workload: Workload, scale: float) -> int:
-    """In a fresh process: warm up on a tiny scene, then the peak RSS growth of one forward+backward."""
-    ours_forward_backward(make_scene(REFERENCE_WORKLOAD, torch.device("cpu"), 0.05))
-    scene = make_scene(workload, torch.device("cpu"), scale)
-    return rss_peak_growth_bytes(lambda: ours_forward_backward(scene))
+    return {"peak_mib": rss_peak_growth_bytes(lambda: ours_forward_backward(scene)) / 2**20}
 
 
 def _print_row(row: dict) -> None:
