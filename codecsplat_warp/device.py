@@ -10,6 +10,8 @@ Rules every op in this package follows (and that this module implements):
 * Tensors cross to Warp zero-copy (:func:`to_warp`): ``wp.from_torch(t.detach(), requires_grad=False)``;
   gradients are returned as fresh tensors by the autograd Functions, never through Warp's grad arrays
   (wrapping a leaf that requires grad would double its gradient, Warp issue #159).
+* Kernels are launched through :func:`launch`, which resolves a generic kernel's overload once per
+  combination of argument types and then passes tensors as raw array descriptors (low host overhead).
 * Non-contiguous inputs are made contiguous deliberately (a copy only when needed) by
   :func:`check_tensor`; wrong shapes or dtypes raise :class:`~codecsplat_warp.errors.InputError`.
 * Finite-value checks (one device-to-host sync each) run unless ``CODECSPLAT_VALIDATE=0`` is set or
@@ -21,7 +23,8 @@ from __future__ import annotations
 import contextlib
 import os
 import threading
-from typing import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Iterator, Sequence
 
 import torch
 import warp as wp
@@ -118,9 +121,20 @@ def warp_scope(device: torch.device) -> Iterator["wp.context.Device"]:
     if device.type != "cuda":
         yield wdev
         return
-    stream = wp.stream_from_torch(torch.cuda.current_stream(device))
-    with wp.ScopedStream(stream, sync_enter=False):
+    with wp.ScopedStream(_warp_stream(torch.cuda.current_stream(device)), sync_enter=False):
         yield wdev
+
+
+_warp_streams: dict[tuple[int, int], "wp.Stream"] = {}
+
+
+def _warp_stream(torch_stream: torch.cuda.Stream) -> "wp.Stream":
+    """The Warp stream wrapping a torch CUDA stream, created once per (device, stream handle)."""
+    key = (torch_stream.device.index, torch_stream.cuda_stream)
+    stream = _warp_streams.get(key)
+    if stream is None:
+        stream = _warp_streams[key] = wp.stream_from_torch(torch_stream)
+    return stream
 
 
 def to_warp(tensor: torch.Tensor, dtype=None, ndim: int | None = None):
@@ -129,6 +143,142 @@ def to_warp(tensor: torch.Tensor, dtype=None, ndim: int | None = None):
     ``dtype`` may be a Warp vector/matrix type whose trailing dimension(s) the tensor provides.
     """
     return wp.from_torch(tensor.detach(), dtype=dtype, requires_grad=False)
+
+
+@dataclass(frozen=True)
+class Grouped:
+    """A tensor whose trailing ``inner`` dimensions form Warp vectors or matrices (made by :func:`vectors`
+    and :func:`matrices`, consumed by :func:`launch`)."""
+
+    tensor: torch.Tensor
+    inner: tuple[int, ...]
+
+
+def vectors(tensor: torch.Tensor) -> Grouped:
+    """``tensor [..., n]`` as a Warp array of n-vectors of its scalar dtype, for :func:`launch`."""
+    return _grouped(tensor, tuple(tensor.shape[-1:]))
+
+
+def matrices(tensor: torch.Tensor) -> Grouped:
+    """``tensor [..., r, c]`` as a Warp array of r x c matrices of its scalar dtype, for :func:`launch`."""
+    return _grouped(tensor, tuple(tensor.shape[-2:]))
+
+
+def _grouped(tensor: torch.Tensor, inner: tuple[int, ...]) -> Grouped:
+    if tensor.dim() <= len(inner):
+        raise InputError(f"a tensor of shape {tuple(tensor.shape)} has no array dimension left for {inner} elements")
+    return Grouped(tensor, inner)
+
+
+_RESOLVED_LAUNCHES: dict[tuple, tuple] = {}
+"""(kernel, adjoint, argument type keys) -> (concrete overload, element rank of every argument: None for a
+scalar or None, 0 for a scalar array, 1 for vectors, 2 for matrices)."""
+
+
+def launch(
+    kernel, dim, args: Sequence, device, *, adj_args: Sequence | None = None, block_dim: int | None = None
+) -> None:
+    """Launch a Warp kernel on tensors zero-copy, with the host overhead of a generic kernel paid once.
+
+    The first launch of ``kernel`` with a combination of argument types (torch dtype and rank of every
+    tensor, type of every scalar) wraps the tensors as ``wp.array`` and goes through all of Warp's argument
+    checks; it also instantiates the concrete overload of a generic kernel. Later launches with the same
+    types reuse that overload and pass each tensor as a raw array descriptor (no type inference, no
+    ``wp.array`` objects). Nothing runs when a launch dimension is 0.
+
+    Args:
+        kernel: a ``@wp.kernel``, generic (``typing.Any`` annotations) or concrete.
+        dim: launch dimensions (an int or up to 4 ints).
+        args: every kernel argument in order (inputs and outputs alike): contiguous tensors (arrays of their
+            scalar dtype and rank), :func:`vectors` / :func:`matrices` of contiguous tensors, Python ints,
+            or Warp scalars such as ``wp.float64(x)`` for ``Any`` scalar parameters.
+        device: the Warp device yielded by :func:`warp_scope` (the launch must run inside that scope).
+        adj_args: given for an adjoint launch (``adjoint=True``): the adjoint of every argument, in the
+            same forms (None for arrays without gradient, zero scalars for scalars).
+        block_dim: lanes per block of a tiled kernel (``wp.launch_tiled``); None for a plain launch.
+
+    Raises:
+        InputError: a tensor argument is not contiguous.
+    """
+    if 0 in ((dim,) if isinstance(dim, int) else tuple(dim)):
+        return
+    adjoint = adj_args is not None
+    adj_args = adj_args or ()
+    key = (kernel, adjoint, *map(_type_key, args), *map(_type_key, adj_args))
+    resolved = _RESOLVED_LAUNCHES.get(key)
+    if resolved is None:
+        dtypes = [_element_dtype(a) for a in (*args, *adj_args)]
+        concrete = _concrete_overload(kernel, args, dtypes)
+        inputs, adj_inputs = _wrap_arrays(args, dtypes, concrete), _wrap_arrays(adj_args, dtypes[len(args):], concrete)
+        _launch_resolved(concrete, dim, inputs, adj_inputs, adjoint, block_dim, device)
+        _RESOLVED_LAUNCHES[key] = (concrete, dtypes)
+        return
+    concrete, dtypes = resolved
+    inputs = _describe_arrays(args, dtypes, concrete)
+    adj_inputs = _describe_arrays(adj_args, dtypes[len(args):], concrete)
+    _launch_resolved(concrete, dim, inputs, adj_inputs, adjoint, block_dim, device)
+
+
+def _type_key(arg) -> object:
+    if isinstance(arg, torch.Tensor):
+        return arg.dtype, arg.dim()
+    if isinstance(arg, Grouped):
+        return arg.tensor.dtype, arg.tensor.dim(), arg.inner
+    return type(arg)
+
+
+def _element_dtype(arg):
+    """Warp dtype of the array an argument becomes (None for scalars and None)."""
+    if isinstance(arg, torch.Tensor):
+        return warp_dtype(arg.dtype)
+    if isinstance(arg, Grouped):
+        scalar = warp_dtype(arg.tensor.dtype)
+        if len(arg.inner) == 1:
+            return wp.types.vector(arg.inner[0], scalar)
+        return wp.types.matrix(arg.inner, scalar)
+    return None
+
+
+def _concrete_overload(kernel, args: Sequence, dtypes: Sequence):
+    """The kernel itself, or for a generic kernel its overload for these arguments (instantiated once)."""
+    if not kernel.is_generic:
+        return kernel
+    return wp.overload(kernel, kernel.infer_argument_types(_wrap_arrays(args, dtypes, kernel)))
+
+
+def _tensor_of(arg, position: int, kernel) -> torch.Tensor:
+    tensor = arg.tensor if isinstance(arg, Grouped) else arg
+    if not tensor.is_contiguous():
+        name = kernel.adj.args[position].label
+        raise InputError(f"tensor for argument {name!r} of kernel {kernel.key} must be contiguous")
+    return tensor
+
+
+def _wrap_arrays(args: Sequence, dtypes: Sequence, kernel) -> list:
+    """Arguments with tensors as ``wp.array`` views (first launch: Warp checks them fully)."""
+    return [
+        arg if dtype is None else to_warp(_tensor_of(arg, i, kernel), dtype=dtype)
+        for i, (arg, dtype) in enumerate(zip(args, dtypes))
+    ]
+
+
+def _describe_arrays(args: Sequence, dtypes: Sequence, kernel) -> list:
+    """Arguments with tensors as light Warp array descriptors (``wp.from_torch(..., return_ctype=True)``);
+    their types were checked by the first launch with these argument types."""
+    return [
+        arg if dtype is None
+        else wp.from_torch(_tensor_of(arg, i, kernel).detach(), dtype=dtype, requires_grad=False, return_ctype=True)
+        for i, (arg, dtype) in enumerate(zip(args, dtypes))
+    ]
+
+
+def _launch_resolved(kernel, dim, inputs, adj_inputs, adjoint: bool, block_dim: int | None, device) -> None:
+    if block_dim is None:
+        wp.launch(kernel, dim=dim, inputs=inputs, adj_inputs=adj_inputs, adjoint=adjoint, device=device)
+    else:
+        wp.launch_tiled(
+            kernel, dim=dim, inputs=inputs, adj_inputs=adj_inputs, adjoint=adjoint, block_dim=block_dim, device=device
+        )
 
 
 def common_device(**tensors: torch.Tensor | None) -> torch.device:
@@ -241,16 +391,3 @@ def check_values(
 
 def _shape_text(shape: Sequence[int | str | None]) -> str:
     return "[" + ",".join("*" if s is None else str(s) for s in shape) + "]"
-
-
-def describe_devices(devices: Mapping[str, torch.device] | None = None) -> str:
-    """One line per available device, for ``selfcheck`` and benchmark headers."""
-    lines = []
-    for dev in available_devices():
-        if dev.type == "cuda":
-            lines.append(f"{dev}: {torch.cuda.get_device_name(dev)}")
-        else:
-            import platform
-
-            lines.append(f"cpu: {platform.processor() or platform.machine()} ({os.cpu_count()} logical cores)")
-    return "\n".join(lines)

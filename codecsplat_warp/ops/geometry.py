@@ -9,10 +9,9 @@ float32), and follow :mod:`codecsplat_warp.cameras` conventions. Camera paramete
 from __future__ import annotations
 
 import torch
-import warp as wp
 
 from ..cameras import Cameras
-from ..device import check_tensor, check_values, common_device, to_warp, warp_scope
+from ..device import check_tensor, check_values, common_device, launch, warp_scope
 from ..errors import DeviceMismatchError, InputError
 from ..kernels import reproject as reproject_kernels
 from ..kernels import unproject as unproject_kernels
@@ -144,7 +143,7 @@ class _Unproject(torch.autograd.Function):
         V, H, W = depth.shape
         points = torch.empty(V, H, W, 3, dtype=depth.dtype, device=depth.device)
         with warp_scope(depth.device) as wdev:
-            _launch(unproject_kernels.unproject_forward, (V, H, W), [depth, intrinsics, c2w, points], wdev)
+            launch(unproject_kernels.unproject_forward, (V, H, W), [depth, intrinsics, c2w, points], wdev)
         ctx.save_for_backward(intrinsics, c2w)
         return points
 
@@ -155,7 +154,7 @@ class _Unproject(torch.autograd.Function):
         V, H, W, _ = grad_points.shape
         grad_depth = torch.empty(V, H, W, dtype=grad_points.dtype, device=grad_points.device)
         with warp_scope(grad_points.device) as wdev:
-            _launch(unproject_kernels.unproject_backward, (V, H, W), [grad_points, intrinsics, c2w, grad_depth], wdev)
+            launch(unproject_kernels.unproject_backward, (V, H, W), [grad_points, intrinsics, c2w, grad_depth], wdev)
         return grad_depth, None, None
 
 
@@ -166,8 +165,8 @@ class _ReprojectAverage(torch.autograd.Function):
         avg = torch.zeros_like(feat)
         count = torch.empty(V, H, W, dtype=torch.int32, device=feat.device)
         with warp_scope(feat.device) as wdev:
-            _launch(reproject_kernels.reproject_average_forward, (V, H, W),
-                    [feat, depth, intrinsics, rel, neighbours, avg, count], wdev)
+            launch(reproject_kernels.reproject_average_forward, (V, H, W),
+                   [feat, depth, intrinsics, rel, neighbours, avg, count], wdev)
         ctx.save_for_backward(feat, depth, intrinsics, rel, neighbours, count)
         ctx.mark_non_differentiable(count)
         return avg, count
@@ -179,8 +178,8 @@ class _ReprojectAverage(torch.autograd.Function):
         grad_depth = torch.empty_like(depth)
         V, _, H, W = feat.shape
         with warp_scope(feat.device) as wdev:
-            _launch(reproject_kernels.reproject_average_backward, (V, H, W),
-                    [grad_avg.contiguous(), feat, depth, intrinsics, rel, neighbours, count, grad_feat, grad_depth], wdev)
+            launch(reproject_kernels.reproject_average_backward, (V, H, W),
+                   [grad_avg.contiguous(), feat, depth, intrinsics, rel, neighbours, count, grad_feat, grad_depth], wdev)
         return grad_feat, grad_depth, None, None, None
 
 
@@ -192,8 +191,8 @@ class _CostVolume(torch.autograd.Function):
         cost = torch.empty(V, D, H, W, dtype=feat.dtype, device=feat.device)
         count = torch.empty(V, D, H, W, dtype=torch.int32, device=feat.device)
         with warp_scope(feat.device) as wdev:
-            _launch(reproject_kernels.cost_volume_forward, (V, D, H, W),
-                    [feat, candidates, intrinsics, rel, neighbours, cost, count], wdev)
+            launch(reproject_kernels.cost_volume_forward, (V, D, H, W),
+                   [feat, candidates, intrinsics, rel, neighbours, cost, count], wdev)
         ctx.save_for_backward(feat, candidates, intrinsics, rel, neighbours, count)
         return cost
 
@@ -202,19 +201,13 @@ class _CostVolume(torch.autograd.Function):
         feat, candidates, intrinsics, rel, neighbours, count = ctx.saved_tensors
         grad_feat = torch.zeros_like(feat)
         with warp_scope(feat.device) as wdev:
-            _launch(reproject_kernels.cost_volume_backward, tuple(count.shape),
-                    [grad_cost.contiguous(), feat, candidates, intrinsics, rel, neighbours, count, grad_feat], wdev)
+            launch(reproject_kernels.cost_volume_backward, tuple(count.shape),
+                   [grad_cost.contiguous(), feat, candidates, intrinsics, rel, neighbours, count, grad_feat], wdev)
         return grad_feat, None, None, None, None
 
 
 # --------------------------------------------------------------------------------------------------
 # Helpers
-def _launch(kernel, dim, tensors, wdev) -> None:
-    if 0 in dim:
-        return
-    wp.launch(kernel, dim=dim, inputs=[to_warp(t) for t in tensors], device=wdev)
-
-
 def _float_input(name: str, t, shape, dims) -> torch.Tensor:
     t = check_tensor(name, t, shape, _ACCEPTED, dims)
     if t.numel() == 0:

@@ -23,7 +23,10 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from ..device import check_finite, check_tensor, common_device, to_warp, validation_enabled, warp_scope
+from ..device import (
+    check_finite, check_tensor, common_device, launch, matrices, to_warp, validation_enabled, vectors, warp_dtype,
+    warp_scope,
+)  # fmt: skip
 from ..errors import InputError, RasterMemoryError
 from ..kernels import raster_composite, raster_project, raster_tiles
 
@@ -89,28 +92,10 @@ class _Settings:
         return math.ceil(self.height / self.tile_size)
 
 
-def _warp_types(dtype: torch.dtype):
-    scalar = wp.float64 if dtype == torch.float64 else wp.float32
-    return {
-        "scalar": scalar,
-        "vec3": wp.types.vector(3, scalar),
-        "vec4": wp.types.vector(4, scalar),
-        "mat33": wp.types.matrix((3, 3), scalar),
-        "mat44": wp.types.matrix((4, 4), scalar),
-    }
-
-
-def _projection_inputs(means, quats, scales, opacities, coeffs, viewmats, Ks):
-    types = _warp_types(means.dtype)
-    return [
-        to_warp(means, dtype=types["vec3"]),
-        to_warp(quats, dtype=types["vec4"]),
-        to_warp(scales, dtype=types["vec3"]),
-        to_warp(opacities),
-        to_warp(coeffs, dtype=types["vec3"]),
-        to_warp(viewmats, dtype=types["mat44"]),
-        to_warp(Ks, dtype=types["mat33"]),
-    ]
+def _projection_inputs(means, quats, scales, opacities, coeffs, viewmats, Ks) -> list:
+    """The 3D-parameter and camera arguments of both projection kernels, in :func:`launch` form."""
+    return [vectors(means), vectors(quats), vectors(scales), opacities, vectors(coeffs), matrices(viewmats),
+            matrices(Ks)]  # fmt: skip
 
 
 class _ProjectGaussians(torch.autograd.Function):
@@ -120,16 +105,16 @@ class _ProjectGaussians(torch.autograd.Function):
     def forward(ctx, means, quats, scales, opacities, coeffs, viewmats, Ks, settings: _Settings):
         B, N = viewmats.shape[0], means.shape[0]
         device = means.device
-        scalar = _warp_types(means.dtype)["scalar"]
+        scalar = warp_dtype(means.dtype)
         splats = torch.zeros(B * N, raster_project.ROW_WIDTH, dtype=means.dtype, device=device)
         radii = torch.empty(B * N, 2, dtype=torch.int32, device=device)
         tile_counts = torch.empty(B * N, dtype=torch.int64, device=device)
         flags = torch.zeros(raster_project.NUM_FLAGS, dtype=torch.int32, device=device)
         with warp_scope(device) as wdev:
-            wp.launch(
+            launch(
                 raster_project.project_gaussians,
-                dim=(B, N),
-                inputs=[
+                (B, N),
+                [
                     *_projection_inputs(means, quats, scales, opacities, coeffs, viewmats, Ks),
                     settings.sh_degree,
                     settings.width,
@@ -141,9 +126,12 @@ class _ProjectGaussians(torch.autograd.Function):
                     settings.tile_size,
                     settings.tiles_x,
                     settings.tiles_y,
+                    splats,
+                    vectors(radii),
+                    tile_counts,
+                    flags,
                 ],
-                outputs=[to_warp(splats), to_warp(radii, dtype=wp.vec2i), to_warp(tile_counts), to_warp(flags)],
-                device=wdev,
+                wdev,
             )
         ctx.settings = settings
         ctx.save_for_backward(means, quats, scales, opacities, coeffs, viewmats, Ks, radii)
@@ -158,15 +146,14 @@ class _ProjectGaussians(torch.autograd.Function):
         grads = [torch.zeros_like(t) for t in (means, quats, scales, opacities, coeffs)]
         if grad_splats is None or N == 0:
             return (*grads, None, None, None)
-        scalar = _warp_types(means.dtype)["scalar"]
-        inputs = _projection_inputs(means, quats, scales, opacities, coeffs, viewmats, Ks)
-        types = _warp_types(means.dtype)
-        adj_inputs = [
-            to_warp(grads[0], dtype=types["vec3"]),
-            to_warp(grads[1], dtype=types["vec4"]),
-            to_warp(grads[2], dtype=types["vec3"]),
-            to_warp(grads[3]),
-            to_warp(grads[4], dtype=types["vec3"]),
+        scalar = warp_dtype(means.dtype)
+        scratch = torch.zeros(B * N, raster_project.ROW_WIDTH, dtype=means.dtype, device=means.device)
+        adj_args = [
+            vectors(grads[0]),
+            vectors(grads[1]),
+            vectors(grads[2]),
+            grads[3],
+            vectors(grads[4]),
             None,
             None,
             None,
@@ -175,26 +162,24 @@ class _ProjectGaussians(torch.autograd.Function):
             0,
             scalar(0.0),
             0,
+            grad_splats.reshape(B * N, raster_project.ROW_WIDTH).contiguous(),
         ]
-        scratch = torch.zeros(B * N, raster_project.ROW_WIDTH, dtype=means.dtype, device=means.device)
         with warp_scope(means.device) as wdev:
-            wp.launch(
+            launch(
                 raster_project.project_gaussians_differentiable,
-                dim=(B, N),
-                inputs=[
-                    *inputs,
-                    to_warp(radii.view(B * N, 2), dtype=wp.vec2i),
+                (B, N),
+                [
+                    *_projection_inputs(means, quats, scales, opacities, coeffs, viewmats, Ks),
+                    vectors(radii.view(B * N, 2)),
                     settings.sh_degree,
                     settings.width,
                     settings.height,
                     scalar(LOW_PASS_PX2),
                     int(settings.antialiased),
+                    scratch,
                 ],
-                outputs=[to_warp(scratch)],
-                adj_inputs=adj_inputs,
-                adj_outputs=[to_warp(grad_splats.reshape(B * N, raster_project.ROW_WIDTH).contiguous())],
-                adjoint=True,
-                device=wdev,
+                wdev,
+                adj_args=adj_args,
             )
         return (*grads, None, None, None)
 
@@ -227,19 +212,19 @@ class _CompositeSplats(torch.autograd.Function):
         blocks, block_dim, blocks_per_tile, kernels = _composite_launch_shape(device, settings.tile_size, len(ranges))
         rows = splats.reshape(-1, raster_project.ROW_WIDTH)
         with warp_scope(device) as wdev:
-            wp.launch_tiled(
+            launch(
                 kernels[0],
-                dim=[blocks],
-                inputs=[
+                (blocks,),
+                [
                     *_composite_common(ranges, sorted_ids, rows, background, settings, blocks_per_tile),
-                    to_warp(color),
-                    to_warp(depth),
-                    to_warp(alpha),
-                    to_warp(transmittance),
-                    to_warp(last),
+                    color,
+                    depth,
+                    alpha,
+                    transmittance,
+                    last,
                 ],
+                wdev,
                 block_dim=block_dim,
-                device=wdev,
             )
         ctx.settings = settings
         ctx.has_background = background is not None
@@ -255,20 +240,20 @@ class _CompositeSplats(torch.autograd.Function):
         grad_rows = torch.zeros_like(rows)
         blocks, block_dim, blocks_per_tile, kernels = _composite_launch_shape(device, settings.tile_size, len(ranges))
         with warp_scope(device) as wdev:
-            wp.launch_tiled(
+            launch(
                 kernels[1],
-                dim=[blocks],
-                inputs=[
+                (blocks,),
+                [
                     *_composite_common(ranges, sorted_ids, rows, background, settings, blocks_per_tile),
-                    to_warp(transmittance),
-                    to_warp(last),
-                    to_warp(grad_color.reshape(B * H * W, 3).contiguous()),
-                    to_warp(grad_depth.reshape(B * H * W).contiguous()),
-                    to_warp(grad_alpha.reshape(B * H * W).contiguous()),
-                    to_warp(grad_rows),
+                    transmittance,
+                    last,
+                    grad_color.reshape(B * H * W, 3).contiguous(),
+                    grad_depth.reshape(B * H * W).contiguous(),
+                    grad_alpha.reshape(B * H * W).contiguous(),
+                    grad_rows,
                 ],
+                wdev,
                 block_dim=block_dim,
-                device=wdev,
             )
         grad_background = None
         if ctx.has_background and ctx.needs_input_grad[1]:
@@ -279,10 +264,10 @@ class _CompositeSplats(torch.autograd.Function):
 def _composite_common(ranges, sorted_ids, rows, background, settings: _Settings, blocks_per_tile: int) -> list:
     dummy_background = background if background is not None else rows.new_zeros(1, 3)
     return [
-        to_warp(ranges),
-        to_warp(sorted_ids),
-        to_warp(rows),
-        to_warp(dummy_background),
+        ranges,
+        sorted_ids,
+        rows,
+        dummy_background,
         int(background is not None),
         int(settings.render_depth),
         settings.width,
@@ -542,32 +527,32 @@ def _bin_intersections(splats, radii, tile_counts, offsets, count, num_cameras, 
     rows = splats.detach().reshape(-1, raster_project.ROW_WIDTH)
     tile_bits = _tile_bits(settings)
     with warp_scope(device) as wdev:
-        wp.launch(
+        launch(
             raster_tiles.emit_intersections,
-            dim=rows.shape[0],
-            inputs=[
-                to_warp(rows),
-                to_warp(radii.reshape(-1, 2), dtype=wp.vec2i),
-                to_warp(tile_counts),
-                to_warp(offsets),
+            rows.shape[0],
+            [
+                rows,
+                vectors(radii.reshape(-1, 2)),
+                tile_counts,
+                offsets,
                 splats.shape[1],
                 settings.tile_size,
                 settings.tiles_x,
                 settings.tiles_y,
                 tile_bits,
+                keys,
+                values,
             ],
-            outputs=[to_warp(keys), to_warp(values)],
-            device=wdev,
+            wdev,
         )
         wp.utils.radix_sort_pairs(
             to_warp(keys), to_warp(values), count, 0, 32 + tile_bits + _camera_bits(num_cameras)
         )
-        wp.launch(
+        launch(
             raster_tiles.tile_ranges,
-            dim=count,
-            inputs=[to_warp(keys), count, tile_bits, settings.tiles_x * settings.tiles_y],
-            outputs=[to_warp(ranges)],
-            device=wdev,
+            count,
+            [keys, count, tile_bits, settings.tiles_x * settings.tiles_y, ranges],
+            wdev,
         )
     return ranges, values[:count]
 
