@@ -128,8 +128,12 @@ def run_selfcheck(devices: Sequence[torch.device], progress: bool = True) -> dic
     jobs = [(c, d, t) for d in devices for c in CHECKS for t in (torch.float32, torch.float64)]
     rows = []
     for check, device, dtype in tqdm(jobs, desc="selfcheck", disable=not progress, leave=False):
-        row = run_check(check, device, dtype)
-        row["status"] = "ok" if row["ok"] else "FAIL"
+        try:
+            row = run_check(check, device, dtype)
+            row["status"] = "ok" if row["ok"] else "FAIL"
+        except Exception as exc:  # noqa: BLE001 - a kernel that cannot run on a device is a failed row, not a crash
+            row = {"kernel": check.name, "device": str(device), "dtype": str(dtype).replace("torch.", ""),
+                   "ok": False, "status": f"ERROR: {type(exc).__name__}: {exc}"[:160]}
         rows.append(row)
     return {"rows": rows, "table": format_table(rows, COLUMNS), "ok": all(r["ok"] for r in rows)}
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..errors import InputError
 from ..ops.geometry import all_other_views, reproject_average
 from ..reference.geometry import reproject_average_reference
 from ..synthetic import make_rig, smooth_depth
@@ -48,6 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> dict:
     device = torch.device(args.device)
     reps = args.reps or (30 if device.type == "cuda" else 3)
+    unknown = [s for s in args.shapes.split(",") if s not in SHAPES]
+    if unknown:
+        raise InputError(f"unknown shape {unknown[0]!r}; choose from {', '.join(SHAPES)}")
     shapes = [SHAPES[s] for s in args.shapes.split(",")]
     rows = []
     for shape in shapes:
