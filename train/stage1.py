@@ -25,7 +25,7 @@ from torch.nn import functional as F
 from tqdm import tqdm
 
 from codecsplat_warp.device import resolve_device
-from codecsplat_warp.errors import InputError
+from codecsplat_warp.errors import CodecSplatError, InputError
 from codecsplat_warp.metrics import LPIPS, WEIGHTS_ENV
 from codecsplat_warp.model import CodecSplat, ModelConfig, get_preset
 
@@ -162,7 +162,10 @@ def train(config: TrainConfig, source: Source | None = None, model_config: Model
     loader = _loader(source, start, config.steps, rank, world, config.workers if device.type == "cuda" else 0)
     writer = None
     if rank == 0:
-        from torch.utils.tensorboard import SummaryWriter
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ModuleNotFoundError as exc:
+            raise CodecSplatError("TensorBoard logging needs the train extra: pip install -e '.[train]'") from exc
 
         out.mkdir(parents=True, exist_ok=True)
         (out / "config.json").write_text(json.dumps({"train": asdict(config), "model": model_config.to_dict()}, indent=1))
