@@ -20,9 +20,13 @@ from dataclasses import dataclass, fields
 import torch
 
 from ..cameras import Cameras
+from ..device import check_tensor
 from ..errors import InputError
 from ..ops.geometry import unproject
 from .heads import PixelGaussians
+
+_ANY_FLOAT = (torch.float32, torch.float64, torch.float16, torch.bfloat16)
+"""Float dtypes a Gaussians field may hold (half types appear under autocast); only shapes are constrained."""
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -50,14 +54,13 @@ class Gaussians:
     sh: torch.Tensor
 
     def __post_init__(self) -> None:
-        n = self.means.shape[0]
-        expected = {"means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,)}
+        dims: dict[str, int] = {}
+        expected = {"means": ("N", 3), "quats": ("N", 4), "scales": ("N", 3), "opacities": ("N",), "sh": ("N", "K", 3)}
         for name, shape in expected.items():
-            if tuple(getattr(self, name).shape) != shape:
-                raise InputError(f"Gaussians.{name} must have shape {list(shape)}, got {tuple(getattr(self, name).shape)}")
-        k = self.sh.shape[1] if self.sh.dim() == 3 else -1
-        if self.sh.dim() != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3 or round(k**0.5) ** 2 != k:
-            raise InputError(f"Gaussians.sh must have shape [{n},K,3] with K a square, got {tuple(self.sh.shape)}")
+            check_tensor(f"Gaussians.{name}", getattr(self, name), shape, _ANY_FLOAT, dims)
+        k = dims["K"]
+        if round(k**0.5) ** 2 != k:
+            raise InputError(f"Gaussians.sh must have shape [N,K,3] with K a square, got {tuple(self.sh.shape)}")
 
     def __len__(self) -> int:
         return self.means.shape[0]

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 
 from ..cameras import Cameras
-from ..device import check_tensor, check_values, common_device, launch, warp_scope
+from ..device import check_same_dtype, check_tensor, check_values, common_device, launch, warp_scope
 from ..errors import DeviceMismatchError, InputError
 from ..kernels import reproject as reproject_kernels
 from ..kernels import unproject as unproject_kernels
@@ -65,7 +65,8 @@ def reproject_average(
     dims = {"V": cameras.num_views}
     feat = _float_input("feat", feat, ("V", "C", "h", "w"), dims)
     depth = _float_input("depth", depth, ("V", "h", "w"), dims)
-    _check_pair(feat=feat, depth=depth)
+    common_device(feat=feat, depth=depth)
+    check_same_dtype(feat=feat, depth=depth)
     check_values(finite={"feat": feat}, positive={"depth": depth})
     cams = _cameras_for(cameras, feat, feat.shape[3], feat.shape[2])
     neighbours = _neighbours(neighbours, cams.num_views, feat.device)
@@ -99,7 +100,8 @@ def plane_sweep_cost_volume(
     if isinstance(candidates, torch.Tensor) and candidates.dim() == 1:
         candidates = candidates[None].expand(cameras.num_views, -1)
     candidates = _float_input("candidates", candidates, ("V", "D"), dims)
-    _check_pair(feat=feat, candidates=candidates)
+    common_device(feat=feat, candidates=candidates)
+    check_same_dtype(feat=feat, candidates=candidates)
     check_values(finite={"feat": feat}, positive={"candidates": candidates})
     cams = _cameras_for(cameras, feat, feat.shape[3], feat.shape[2])
     neighbours = _neighbours(neighbours, cams.num_views, feat.device)
@@ -213,14 +215,6 @@ def _float_input(name: str, t, shape, dims) -> torch.Tensor:
     if t.numel() == 0:
         raise InputError(f"{name} is empty (shape {tuple(t.shape)})")
     return t.float() if t.dtype in _LOW_PRECISION else t
-
-
-def _check_pair(**tensors: torch.Tensor) -> None:
-    common_device(**tensors)
-    dtypes = {n: t.dtype for n, t in tensors.items()}
-    if len(set(dtypes.values())) > 1:
-        listing = ", ".join(f"{n}: {str(d).replace('torch.', '')}" for n, d in dtypes.items())
-        raise InputError(f"arguments must share one float dtype, got {listing}")
 
 
 def _cameras_for(cameras: Cameras, like: torch.Tensor, width: int, height: int) -> Cameras:
