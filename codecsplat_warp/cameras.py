@@ -30,6 +30,9 @@ ROTATION_TOLERANCE = 1e-4
 SKEW_TOLERANCE = 1e-3
 """Largest |K[0,1]| / fx accepted: skew is not modelled, so it must be negligible."""
 
+MEMO_ENTRIES = 8
+"""Values :meth:`Cameras.memoized` keeps per cameras object (oldest dropped first)."""
+
 OPENGL_TO_OPENCV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
 """Right-multiply an OpenGL/NeRF camera-to-world matrix (x right, y up, z backward) by this to get OpenCV axes."""
 
@@ -190,6 +193,24 @@ class Cameras:
         for field in fields(self):
             object.__setattr__(new, field.name, changes.get(field.name, getattr(self, field.name)))
         return new
+
+    def memoized(self, key, compute):
+        """``compute()`` evaluated once per ``key`` for these cameras (e.g. kernel-ready intrinsics and relative
+        transforms that every op call would otherwise rebuild with a dozen small device ops).
+
+        The cache lives on this object only (transformations return new objects with an empty one) and is
+        dropped when ``K`` or ``w2c`` are modified in place.
+        """
+        versions = (self.K._version, self.w2c._version)
+        cache = self.__dict__.setdefault("_memo", {})
+        if cache.get("versions") != versions:
+            cache.clear()
+            cache["versions"] = versions
+        if key not in cache:
+            while len(cache) > MEMO_ENTRIES:  # "versions" plus at most MEMO_ENTRIES values, oldest dropped first
+                del cache[next(k for k in cache if k != "versions")]
+            cache[key] = compute()
+        return cache[key]
 
     def with_depth_range(self, near, far) -> "Cameras":
         """The same cameras with new near/far bounds ([V] or scalars)."""

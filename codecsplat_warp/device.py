@@ -207,16 +207,55 @@ def launch(
     key = (kernel, adjoint, *map(_type_key, args), *map(_type_key, adj_args))
     resolved = _RESOLVED_LAUNCHES.get(key)
     if resolved is None:
-        dtypes = [_element_dtype(a) for a in (*args, *adj_args)]
-        concrete = _concrete_overload(kernel, args, dtypes)
-        inputs, adj_inputs = _wrap_arrays(args, dtypes, concrete), _wrap_arrays(adj_args, dtypes[len(args):], concrete)
-        _launch_resolved(concrete, dim, inputs, adj_inputs, adjoint, block_dim, device)
-        _RESOLVED_LAUNCHES[key] = (concrete, dtypes)
-        return
+        with _resolve_lock:  # concurrent CPU launches (run_concurrently) must not compile a module twice
+            if key not in _RESOLVED_LAUNCHES:
+                dtypes = [_element_dtype(a) for a in (*args, *adj_args)]
+                concrete = _concrete_overload(kernel, args, dtypes)
+                inputs = _wrap_arrays(args, dtypes, concrete)
+                adj_inputs = _wrap_arrays(adj_args, dtypes[len(args):], concrete)
+                _launch_resolved(concrete, dim, inputs, adj_inputs, adjoint, block_dim, device)
+                _RESOLVED_LAUNCHES[key] = (concrete, dtypes)
+                return
+        resolved = _RESOLVED_LAUNCHES[key]
     concrete, dtypes = resolved
     inputs = _describe_arrays(args, dtypes, concrete)
     adj_inputs = _describe_arrays(adj_args, dtypes[len(args):], concrete)
     _launch_resolved(concrete, dim, inputs, adj_inputs, adjoint, block_dim, device)
+
+
+_resolve_lock = threading.Lock()
+
+
+def row_chunks(rows: int, device: torch.device) -> list[tuple[int, int]]:
+    """(first row, row count) pieces of a launch over ``rows`` image rows, one per CPU worker thread.
+
+    Warp runs a CPU launch on a single thread; ops split their launches by rows and run the pieces with
+    :func:`run_concurrently` (a Warp CPU launch releases the GIL), using ``torch.get_num_threads()``
+    threads like torch's own CPU ops. On CUDA there is one piece.
+    """
+    pieces = 1 if device.type == "cuda" else max(1, min(torch.get_num_threads(), rows))
+    bounds = [rows * i // pieces for i in range(pieces + 1)]
+    return [(lo, hi - lo) for lo, hi in zip(bounds, bounds[1:]) if hi > lo]
+
+
+_cpu_pool = None
+
+
+def run_concurrently(tasks: Sequence) -> None:
+    """Call every task (no arguments); more than one run on a shared thread pool. Re-raises the first error."""
+    global _cpu_pool
+    if len(tasks) <= 1:
+        for task in tasks:
+            task()
+        return
+    if _cpu_pool is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _cpu_pool = ThreadPoolExecutor(max_workers=os.cpu_count() or 1, thread_name_prefix="codecsplat-cpu")
+    futures = [_cpu_pool.submit(task) for task in tasks[1:]]
+    tasks[0]()
+    for future in futures:
+        future.result()
 
 
 def _type_key(arg) -> object:

@@ -14,7 +14,8 @@ Array arguments (all scalar arrays so one kernel serves float32 and float64):
 
 * ``feat`` [V,C,H,W] features; ``depth`` [V,H,W] reference depths; ``candidates`` [V,D] sweep depths;
 * ``intrinsics`` [V,4] fx, fy, cx, cy in pixels *of the feature grid*;
-* ``rel`` [V,M,4,4] reference-to-source transforms; ``neighbours`` [V,M] int32 source view indices.
+* ``rel`` [V,M,4,4] reference-to-source transforms; ``neighbours`` [V,M] int32 source view indices;
+* ``row0``: first image row of the launch (CPU ops split a launch by rows over threads; 0 on CUDA).
 
 Backward kernels are hand-written (the forward loops run a data-dependent number of samples).
 """
@@ -157,12 +158,14 @@ def reproject_average_forward(
     neighbours: wp.array(dtype=wp.int32, ndim=2),
     avg: wp.array(dtype=Any, ndim=4),
     count: wp.array(dtype=wp.int32, ndim=3),
+    row0: int,
 ):
     """avg[r, :, y, x] = mean over valid sources of the warped source features; count = number valid.
 
-    ``avg`` must be zero-initialised. Launch dim: (V, H, W).
+    ``avg`` must be zero-initialised. Launch dim: (V, rows, W) covering rows row0.. of the image.
     """
-    r, y, x = wp.tid()
+    r, row, x = wp.tid()
+    y = row0 + row
     d = depth[r, y, x]
     n = int(0)
     for m in range(neighbours.shape[1]):
@@ -190,12 +193,14 @@ def reproject_average_backward(
     count: wp.array(dtype=wp.int32, ndim=3),
     grad_feat: wp.array(dtype=Any, ndim=4),
     grad_depth: wp.array(dtype=Any, ndim=3),
+    row0: int,
 ):
     """Adjoint of :func:`reproject_average_forward` (count treated as constant: it is piecewise constant).
 
-    ``grad_feat`` must be zero-initialised (atomic scatter). Launch dim: (V, H, W).
+    ``grad_feat`` must be zero-initialised (atomic scatter). Launch dim: (V, rows, W) from row row0.
     """
-    r, y, x = wp.tid()
+    r, row, x = wp.tid()
+    y = row0 + row
     n = count[r, y, x]
     gd = feat.dtype(0.0)
     if n > 0:
@@ -222,12 +227,15 @@ def cost_volume_forward(
     neighbours: wp.array(dtype=wp.int32, ndim=2),
     cost: wp.array(dtype=Any, ndim=4),
     count: wp.array(dtype=wp.int32, ndim=4),
+    row0: int,
 ):
     """cost[r, k, y, x] = mean over valid sources s of <feat[r,:,y,x], warp_s(feat[s]) at depth candidates[r,k]> / sqrt(C).
 
-    Zero where no source is valid; count[r, k, y, x] = number of valid sources. Launch dim: (V, D, H, W).
+    Zero where no source is valid; count[r, k, y, x] = number of valid sources. Launch dim: (V, D, rows, W)
+    from row row0.
     """
-    r, k, y, x = wp.tid()
+    r, k, row, x = wp.tid()
+    y = row0 + row
     d = candidates[r, k]
     total = feat.dtype(0.0)
     n = int(0)
@@ -254,12 +262,14 @@ def cost_volume_backward(
     neighbours: wp.array(dtype=wp.int32, ndim=2),
     count: wp.array(dtype=wp.int32, ndim=4),
     grad_feat: wp.array(dtype=Any, ndim=4),
+    row0: int,
 ):
     """Adjoint of :func:`cost_volume_forward` with respect to ``feat`` (both the reference and the sources).
 
-    ``grad_feat`` must be zero-initialised (atomic scatter). Launch dim: (V, D, H, W).
+    ``grad_feat`` must be zero-initialised (atomic scatter). Launch dim: (V, D, rows, W) from row row0.
     """
-    r, k, y, x = wp.tid()
+    r, k, row, x = wp.tid()
+    y = row0 + row
     n = count[r, k, y, x]
     if n > 0:
         g = grad_cost[r, k, y, x] / (feat.dtype(n) * wp.sqrt(feat.dtype(feat.shape[1])))

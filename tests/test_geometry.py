@@ -274,3 +274,41 @@ def _check_scene_reprojection(data_root, scene):
     got = avg[0].permute(1, 2, 0).numpy()
     np.testing.assert_allclose(got[valid & margin], uv1[valid & margin], atol=1e-2, err_msg=scene)
     assert (valid[margin] == 1).all()
+
+
+# ---------------------------------------------------------------------------------------------- host-side work
+def test_cpu_row_pieces_give_the_same_results_as_one_launch():
+    """CPU launches are split by rows over torch's threads; gradients scatter into per-piece buffers."""
+    cams = make_rig(3, 24, 18)
+    feat = torch.randn(3, 4, 9, 12, dtype=torch.float64)
+    depth = smooth_depth(3, 9, 12)
+    results = {}
+    threads = torch.get_num_threads()
+    try:
+        for n in (1, 3):
+            torch.set_num_threads(n)
+            f, d = feat.clone().requires_grad_(), depth.clone().requires_grad_()
+            avg, count = reproject_average(f, d, cams)
+            cost = plane_sweep_cost_volume(f, inverse_depth_candidates(cams, 4), cams)
+            (avg.square().sum() + cost.square().sum()).backward()
+            results[n] = (avg, count, cost, f.grad, d.grad)
+    finally:
+        torch.set_num_threads(threads)
+    for one, three in zip(results[1], results[3]):
+        torch.testing.assert_close(one, three, rtol=1e-12, atol=1e-12)
+
+
+def test_camera_arrays_are_memoized_and_follow_in_place_edits():
+    cams = make_rig(2, 16, 12, dtype=torch.float64)
+    feat = torch.randn(2, 3, 12, 16, dtype=torch.float64)
+    depth = smooth_depth(2, 12, 16)
+    first = reproject_average(feat, depth, cams)[0]
+    assert len(cams.__dict__["_memo"]) == 2  # the version stamp and one entry
+    torch.testing.assert_close(reproject_average(feat, depth, cams)[0], first, rtol=0, atol=0)
+    with torch.no_grad():
+        cams.w2c[1, 0, 3] += 0.5  # moves view 1: the memoized transforms must not be reused
+    want = reproject_average_reference(feat, depth, cams, all_other_views(2))[0]
+    torch.testing.assert_close(reproject_average(feat, depth, cams)[0], want, rtol=1e-10, atol=1e-10)
+    for _ in range(20):  # fresh neighbour tensors every call: the memo stays bounded
+        reproject_average(feat, depth, cams, neighbours=torch.tensor([[1], [0]]))
+    assert len(cams.__dict__["_memo"]) <= 9

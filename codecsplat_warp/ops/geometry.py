@@ -8,10 +8,14 @@ float32), and follow :mod:`codecsplat_warp.cameras` conventions. Camera paramete
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 from ..cameras import Cameras
-from ..device import check_same_dtype, check_tensor, check_values, common_device, launch, warp_scope
+from ..device import (
+    check_same_dtype, check_tensor, check_values, common_device, launch, row_chunks, run_concurrently, warp_scope,
+)
 from ..errors import DeviceMismatchError, InputError
 from ..kernels import reproject as reproject_kernels
 from ..kernels import unproject as unproject_kernels
@@ -36,8 +40,8 @@ def unproject(depth: torch.Tensor, cameras: Cameras) -> torch.Tensor:
     """
     depth = _float_input("depth", depth, ("V", "H", "W"), {"V": cameras.num_views})
     check_values(positive={"depth": depth})
-    cams = _cameras_for(cameras, depth, depth.shape[2], depth.shape[1])
-    return _Unproject.apply(depth, _intrinsics_vector(cams), cams.c2w.contiguous())
+    grid = _kernel_cameras(cameras, depth, depth.shape[2], depth.shape[1], None)
+    return _Unproject.apply(depth, grid.intrinsics, grid.c2w)
 
 
 def reproject_average(
@@ -68,10 +72,8 @@ def reproject_average(
     common_device(feat=feat, depth=depth)
     check_same_dtype(feat=feat, depth=depth)
     check_values(finite={"feat": feat}, positive={"depth": depth})
-    cams = _cameras_for(cameras, feat, feat.shape[3], feat.shape[2])
-    neighbours = _neighbours(neighbours, cams.num_views, feat.device)
-    rel = _relative_transforms(cams, neighbours, feat.dtype)
-    return _ReprojectAverage.apply(feat, depth, _intrinsics_vector(cams), rel, neighbours)
+    grid = _kernel_cameras(cameras, feat, feat.shape[3], feat.shape[2], neighbours)
+    return _ReprojectAverage.apply(feat, depth, grid.intrinsics, grid.rel, grid.neighbours)
 
 
 def plane_sweep_cost_volume(
@@ -103,10 +105,8 @@ def plane_sweep_cost_volume(
     common_device(feat=feat, candidates=candidates)
     check_same_dtype(feat=feat, candidates=candidates)
     check_values(finite={"feat": feat}, positive={"candidates": candidates})
-    cams = _cameras_for(cameras, feat, feat.shape[3], feat.shape[2])
-    neighbours = _neighbours(neighbours, cams.num_views, feat.device)
-    rel = _relative_transforms(cams, neighbours, feat.dtype)
-    return _CostVolume.apply(feat, candidates, _intrinsics_vector(cams), rel, neighbours)
+    grid = _kernel_cameras(cameras, feat, feat.shape[3], feat.shape[2], neighbours)
+    return _CostVolume.apply(feat, candidates, grid.intrinsics, grid.rel, grid.neighbours)
 
 
 def inverse_depth_candidates(cameras: Cameras, num: int) -> torch.Tensor:
@@ -167,8 +167,11 @@ class _ReprojectAverage(torch.autograd.Function):
         avg = torch.zeros_like(feat)
         count = torch.empty(V, H, W, dtype=torch.int32, device=feat.device)
         with warp_scope(feat.device) as wdev:
-            launch(reproject_kernels.reproject_average_forward, (V, H, W),
-                   [feat, depth, intrinsics, rel, neighbours, avg, count], wdev)
+            run_concurrently([
+                lambda row0=row0, rows=rows: launch(reproject_kernels.reproject_average_forward, (V, rows, W),
+                                                    [feat, depth, intrinsics, rel, neighbours, avg, count, row0], wdev)
+                for row0, rows in row_chunks(H, feat.device)
+            ])
         ctx.save_for_backward(feat, depth, intrinsics, rel, neighbours, count)
         ctx.mark_non_differentiable(count)
         return avg, count
@@ -176,13 +179,19 @@ class _ReprojectAverage(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_avg, _grad_count):
         feat, depth, intrinsics, rel, neighbours, count = ctx.saved_tensors
-        grad_feat = torch.zeros_like(feat)
+        grad_avg = grad_avg.contiguous()
         grad_depth = torch.empty_like(depth)
         V, _, H, W = feat.shape
+        chunks = row_chunks(H, feat.device)
+        grad_feats = [torch.zeros_like(feat) for _ in chunks]  # one per concurrent piece: scatters overlap
         with warp_scope(feat.device) as wdev:
-            launch(reproject_kernels.reproject_average_backward, (V, H, W),
-                   [grad_avg.contiguous(), feat, depth, intrinsics, rel, neighbours, count, grad_feat, grad_depth], wdev)
-        return grad_feat, grad_depth, None, None, None
+            run_concurrently([
+                lambda row0=row0, rows=rows, grad_feat=grad_feat: launch(
+                    reproject_kernels.reproject_average_backward, (V, rows, W),
+                    [grad_avg, feat, depth, intrinsics, rel, neighbours, count, grad_feat, grad_depth, row0], wdev)
+                for (row0, rows), grad_feat in zip(chunks, grad_feats)
+            ])
+        return _sum(grad_feats), grad_depth, None, None, None
 
 
 class _CostVolume(torch.autograd.Function):
@@ -193,19 +202,29 @@ class _CostVolume(torch.autograd.Function):
         cost = torch.empty(V, D, H, W, dtype=feat.dtype, device=feat.device)
         count = torch.empty(V, D, H, W, dtype=torch.int32, device=feat.device)
         with warp_scope(feat.device) as wdev:
-            launch(reproject_kernels.cost_volume_forward, (V, D, H, W),
-                   [feat, candidates, intrinsics, rel, neighbours, cost, count], wdev)
+            run_concurrently([
+                lambda row0=row0, rows=rows: launch(reproject_kernels.cost_volume_forward, (V, D, rows, W),
+                                                    [feat, candidates, intrinsics, rel, neighbours, cost, count, row0], wdev)
+                for row0, rows in row_chunks(H, feat.device)
+            ])
         ctx.save_for_backward(feat, candidates, intrinsics, rel, neighbours, count)
         return cost
 
     @staticmethod
     def backward(ctx, grad_cost):
         feat, candidates, intrinsics, rel, neighbours, count = ctx.saved_tensors
-        grad_feat = torch.zeros_like(feat)
+        grad_cost = grad_cost.contiguous()
+        V, D, H, W = count.shape
+        chunks = row_chunks(H, feat.device)
+        grad_feats = [torch.zeros_like(feat) for _ in chunks]  # one per concurrent piece: scatters overlap
         with warp_scope(feat.device) as wdev:
-            launch(reproject_kernels.cost_volume_backward, tuple(count.shape),
-                   [grad_cost.contiguous(), feat, candidates, intrinsics, rel, neighbours, count, grad_feat], wdev)
-        return grad_feat, None, None, None, None
+            run_concurrently([
+                lambda row0=row0, rows=rows, grad_feat=grad_feat: launch(
+                    reproject_kernels.cost_volume_backward, (V, D, rows, W),
+                    [grad_cost, feat, candidates, intrinsics, rel, neighbours, count, grad_feat, row0], wdev)
+                for (row0, rows), grad_feat in zip(chunks, grad_feats)
+            ])
+        return _sum(grad_feats), None, None, None, None
 
 
 # --------------------------------------------------------------------------------------------------
@@ -217,13 +236,44 @@ def _float_input(name: str, t, shape, dims) -> torch.Tensor:
     return t.float() if t.dtype in _LOW_PRECISION else t
 
 
-def _cameras_for(cameras: Cameras, like: torch.Tensor, width: int, height: int) -> Cameras:
-    """Cameras rescaled to a width x height grid, in ``like``'s dtype; they must be on its device."""
+@dataclass(frozen=True)
+class _KernelCameras:
+    """Camera arrays in a kernel's form, for one feature grid and dtype (all contiguous, on the cameras' device).
+
+    intrinsics [V,4] (fx, fy, cx, cy) in pixels of the grid; c2w [V,4,4]; rel [V,M,4,4] reference-to-source
+    transforms composed in float64; neighbours [V,M] int32 (None for ops without sources).
+    """
+
+    intrinsics: torch.Tensor
+    c2w: torch.Tensor
+    rel: torch.Tensor | None
+    neighbours: torch.Tensor | None
+
+
+def _kernel_cameras(cameras: Cameras, like: torch.Tensor, width: int, height: int, neighbours) -> _KernelCameras:
+    """Kernel-ready camera arrays for a width x height grid in ``like``'s dtype, memoized on ``cameras``.
+
+    Building them takes a dozen small device ops and a host sync (neighbour index checks); an op called again
+    with the same cameras object (and the same, unmodified ``neighbours`` tensor) reuses them.
+    """
     if not isinstance(cameras, Cameras):
         raise InputError(f"cameras must be a codecsplat_warp.cameras.Cameras, got {type(cameras).__name__}")
     if cameras.device != like.device:
         raise DeviceMismatchError(f"cameras are on {cameras.device} but the tensors are on {like.device}")
-    return cameras.to(dtype=like.dtype).rescaled(width, height)
+    given = None if neighbours is None else (id(neighbours), getattr(neighbours, "_version", None))
+    key = ("kernel", like.dtype, width, height, given)
+
+    def build() -> tuple[_KernelCameras, object]:
+        cams = cameras.to(dtype=like.dtype).rescaled(width, height)
+        if neighbours is None:
+            index = all_other_views(cams.num_views, like.device)
+        else:
+            index = _checked_neighbours(neighbours, cams.num_views, like.device)
+        rel = cameras.to(dtype=torch.float64).relative_transforms(index).to(like.dtype).contiguous()
+        # the given neighbours tensor is kept alive with the entry, so its id cannot be reused while cached
+        return _KernelCameras(_intrinsics_vector(cams), cams.c2w.contiguous(), rel, index), neighbours
+
+    return cameras.memoized(key, build)[0]
 
 
 def _intrinsics_vector(cameras: Cameras) -> torch.Tensor:
@@ -232,9 +282,16 @@ def _intrinsics_vector(cameras: Cameras) -> torch.Tensor:
     return torch.stack([K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]], dim=-1).contiguous()
 
 
-def _neighbours(neighbours, num_views: int, device: torch.device) -> torch.Tensor:
-    if neighbours is None:
-        return all_other_views(num_views, device)
+def _sum(tensors: list[torch.Tensor]) -> torch.Tensor:
+    """Sum of per-piece gradient buffers (the first one, summed into in place)."""
+    total = tensors[0]
+    for t in tensors[1:]:
+        total += t
+    return total
+
+
+def _checked_neighbours(neighbours, num_views: int, device: torch.device) -> torch.Tensor:
+    """[V,M] int32 contiguous copy of valid source-view indices (InputError otherwise)."""
     if not isinstance(neighbours, torch.Tensor) or neighbours.dim() != 2 or neighbours.shape[0] != num_views:
         got = tuple(neighbours.shape) if isinstance(neighbours, torch.Tensor) else type(neighbours).__name__
         raise InputError(f"neighbours must be a [V={num_views},M] integer tensor, got {got}")
@@ -242,11 +299,6 @@ def _neighbours(neighbours, num_views: int, device: torch.device) -> torch.Tenso
         raise InputError(f"neighbours must hold integer view indices, got dtype {neighbours.dtype}")
     if neighbours.device != device:
         raise DeviceMismatchError(f"neighbours are on {neighbours.device} but feat is on {device}")
-    if neighbours.numel() and (int(neighbours.min()) < 0 or int(neighbours.max()) >= num_views):
+    if neighbours.numel() and bool(((neighbours < 0) | (neighbours >= num_views)).any()):
         raise InputError(f"neighbours must index views in [0, {num_views - 1}]")
     return neighbours.to(torch.int32).contiguous()
-
-
-def _relative_transforms(cameras: Cameras, neighbours: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """[V,M,4,4] reference-to-source transforms, composed in float64 then cast to ``dtype``."""
-    return cameras.to(dtype=torch.float64).relative_transforms(neighbours).to(dtype).contiguous()
