@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..device import set_validation, validation_enabled
 from ..errors import InputError
 from ..ops.geometry import all_other_views, reproject_average
 from ..reference.geometry import reproject_average_reference
@@ -44,6 +45,8 @@ IMPLEMENTATIONS = ("warp", "torch")
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--shapes", default=",".join(SHAPES), help=f"comma list of {', '.join(SHAPES)}")
     parser.add_argument("--reps", type=int, default=None, help="timed repetitions (default: 30 on CUDA, 3 on CPU)")
+    parser.add_argument("--validate", choices=("on", "off"), default="on",
+                        help="finite/positive input checks (one host sync per call; on by default, as for users)")
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -53,18 +56,25 @@ def run(args: argparse.Namespace) -> dict:
     if unknown:
         raise InputError(f"unknown shape {unknown[0]!r}; choose from {', '.join(SHAPES)}")
     shapes = [SHAPES[s] for s in args.shapes.split(",")]
+    previous = validation_enabled()
+    set_validation(args.validate == "on")
     rows = []
-    for shape in shapes:
-        for impl in IMPLEMENTATIONS:
-            rows.append(measure(shape, impl, device, reps))
-            _print_row(rows[-1])
+    try:
+        for shape in shapes:
+            for impl in IMPLEMENTATIONS:
+                rows.append(measure(shape, impl, device, reps))
+                _print_row(rows[-1])
+    finally:
+        set_validation(previous)
     for shape in shapes:
         warp_row, torch_row = (next(r for r in rows if r["shape"] == shape.name and r["impl"] == i) for i in IMPLEMENTATIONS)
         warp_row["speedup_fwd_bwd"] = torch_row["fwd_bwd_ms"] / warp_row["fwd_bwd_ms"]
         warp_row["memory_ratio"] = (warp_row["peak_mib"] / torch_row["peak_mib"]) if torch_row["peak_mib"] else None
+        warp_row["memory_ratio_fwd"] = (
+            warp_row["peak_fwd_mib"] / torch_row["peak_fwd_mib"]) if torch_row["peak_fwd_mib"] else None
     table = format_table(rows, COLUMNS)
-    print(f"\nreproject_average, float32, {machine_name(device)}\n{table}")
-    return {"benchmark": "geometry", "device": str(device), "machine": machine_name(device), "rows": rows, "table": table}
+    print(f"\nreproject_average, float32, input checks {args.validate}, {machine_name(device)}\n{table}")
+    return {"benchmark": "geometry", "validate": args.validate, "device": str(device), "machine": machine_name(device), "rows": rows, "table": table}
 
 
 COLUMNS = [
@@ -72,12 +82,14 @@ COLUMNS = [
     ("impl", "impl", "s"),
     ("fwd_ms", "fwd ms", ".3f"),
     ("fwd_bwd_ms", "fwd+bwd ms", ".3f"),
-    ("peak_mib", "peak MiB", ".1f"),
+    ("peak_fwd_mib", "fwd peak MiB", ".1f"),
+    ("peak_mib", "fwd+bwd peak MiB", ".1f"),
     ("max_err_fwd", "max err fwd", ".2e"),
     ("validity_flips", "validity flips", "d"),
     ("rel_err_grad", "rel err grad", ".2e"),
     ("speedup_fwd_bwd", "speed-up fwd+bwd", ".2f"),
-    ("memory_ratio", "memory ratio", ".3f"),
+    ("memory_ratio_fwd", "memory ratio fwd", ".3f"),
+    ("memory_ratio", "memory ratio fwd+bwd", ".3f"),
 ]
 
 
@@ -107,7 +119,7 @@ def _forward_backward(impl: str, cams, feat, depth, weights):
     feat = feat.detach().requires_grad_()
     depth = depth.detach().requires_grad_()
     out, count = _op(impl)(feat, depth, cams)
-    grads = torch.autograd.grad((out * weights).sum(), (feat, depth))
+    grads = torch.autograd.grad(out, (feat, depth), grad_outputs=weights)  # d(sum(out * weights)), no temporaries
     return out.detach(), count, grads
 
 
@@ -118,7 +130,8 @@ def measure(shape: Shape, impl: str, device: torch.device, reps: int) -> dict:
     with torch.no_grad():
         fwd = time_call(lambda: op(feat, depth, cams), device, reps)
     fwd_bwd = time_call(lambda: _forward_backward(impl, cams, feat, depth, weights), device, reps)
-    peak = _peak_bytes(shape, impl, device)
+    peak_fwd = _peak_bytes(shape, impl, device, backward=False)
+    peak = _peak_bytes(shape, impl, device, backward=True)
     out, count, grads = _forward_backward(impl, cams, feat, depth, weights)
     ref_out, ref_count, ref_grads = _float64_reference(shape, device)
     grad_err = max(float((g.double() - r).norm() / r.norm().clamp_min(1e-30)) for g, r in zip(grads, ref_grads))
@@ -129,7 +142,7 @@ def measure(shape: Shape, impl: str, device: torch.device, reps: int) -> dict:
         "shape": shape.name, "impl": impl, "views": shape.views, "channels": shape.channels,
         "grid": f"{shape.grid_h}x{shape.grid_w}", "fwd_ms": fwd.median_ms, "fwd_bwd_ms": fwd_bwd.median_ms,
         "fwd_spread_ms": [fwd.min_ms, fwd.max_ms], "fwd_bwd_spread_ms": [fwd_bwd.min_ms, fwd_bwd.max_ms], "reps": reps,
-        "peak_mib": peak / 2**20, "max_err_fwd": float((out.double() - ref_out)[same_count].abs().max()),
+        "peak_fwd_mib": peak_fwd / 2**20, "peak_mib": peak / 2**20, "max_err_fwd": float((out.double() - ref_out)[same_count].abs().max()),
         "validity_flips": int((count != ref_count).sum()), "rel_err_grad": grad_err,
     }
 
@@ -147,8 +160,17 @@ def _float64_reference(shape: Shape, device: torch.device):
     return _reference_cache[key]
 
 
-def _peak_bytes(shape: Shape, impl: str, device: torch.device) -> int:
+def _peak_bytes(shape: Shape, impl: str, device: torch.device, backward: bool) -> int:
+    """Peak memory of one forward (inference, no autograd) or one forward+backward, above the inputs."""
     cams, feat, depth, weights = make_inputs(shape, device)
+    op = _op(impl)
+
+    def forward():
+        with torch.no_grad():
+            return op(feat, depth, cams)
+
+    call = (lambda: _forward_backward(impl, cams, feat, depth, weights)) if backward else forward
+    call()  # camera arrays memoized, kernels loaded: measure the steady state
     if device.type == "cuda":
-        return cuda_peak_bytes(lambda: _forward_backward(impl, cams, feat, depth, weights), device)
-    return rss_peak_growth_bytes(lambda: _forward_backward(impl, cams, feat, depth, weights))
+        return cuda_peak_bytes(call, device)
+    return rss_peak_growth_bytes(call)
