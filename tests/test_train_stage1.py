@@ -11,9 +11,12 @@ from conftest import needs_lpips
 from train.checkpoint import (
     MAX_FILE_BYTES, join_tensors, latest_checkpoint, load_checkpoint, save_checkpoint, split_tensors,
 )
-from train.data import split_context_targets
-from train.stage1 import TrainConfig, lr_factor, make_optimizer, parse_args, train
+from train.data import make_source, split_context_targets, training_scenes
+from train.pack_scenes import pack_scene
+from train.stage1 import METRICS_FILE, TrainConfig, lr_factor, make_optimizer, parse_args, train
+from train.validate import nearest_context_images, plot_curve, read_metrics, SceneScore
 
+from codecsplat_warp.errors import InputError  # noqa: E402
 from codecsplat_warp.model import CodecSplat, get_preset  # noqa: E402
 
 
@@ -77,6 +80,44 @@ def test_context_and_target_split_surrounds_targets():
     cams = _cameras(6)
     context, targets = split_context_targets(cams, 0, 2, 4)
     assert context == [0, 5] and sorted(targets) == [1, 2, 3, 4]
+
+
+@needs_lpips
+def test_time_limit_stops_cleanly_with_a_checkpoint_and_logged_steps(tmp_path):
+    config = TrainConfig(preset="tiny", data="procedural", device="cpu", workers=0, warmup_steps=2, steps=50,
+                         lpips_weights=str(WEIGHTS), checkpoint_every=100, log_every=1, time_limit_s=1e-3,
+                         out=str(tmp_path))
+    metrics = train(config, progress=False)
+    assert metrics["step"] == 1
+    assert latest_checkpoint(tmp_path).name == "step-00000001"
+    assert [r["step"] for r in read_metrics(tmp_path)] == [1]
+    plot_curve(read_metrics(tmp_path), [SceneScore("s", 1, 12.0, 11.0)], 1, tmp_path / "curve.png")
+    assert (tmp_path / "curve.png").stat().st_size > 1000 and (tmp_path / METRICS_FILE).is_file()
+
+
+def test_held_out_scenes_are_left_out_and_must_exist(data_root):
+    names = training_scenes(data_root, ["llff_horns", "dtu_scan37"])
+    assert "llff_horns" not in names and "dtu_scan37" not in names and len(names) >= 2
+    with pytest.raises(InputError, match="no_such_scene"):
+        training_scenes(data_root, ["no_such_scene"])
+
+
+def test_mixed_source_alternates_procedural_and_real_packed_scenes(data_root, tmp_path):
+    pack_scene(data_root / "llff_horns", tmp_path / "llff_horns", short_side=64)
+    pack_scene(data_root / "dtu_scan37", tmp_path / "dtu_scan37", short_side=64)
+    source = make_source(f"mix:{tmp_path}", get_preset("tiny"), seed=0, holdout=["dtu_scan37"])
+    real, procedural = source(1), source(0)
+    assert real.key == "llff_horns" and procedural.key != "llff_horns"
+    assert real.context_images.shape == procedural.context_images.shape == (2, 3, 32, 48)
+
+
+def test_nearest_view_baseline_picks_the_closest_context_camera():
+    from train.data import TrainingSample
+
+    cams = _cameras(4)
+    images = torch.arange(4, dtype=torch.float32)[:, None, None, None].expand(4, 3, 32, 48)
+    sample = TrainingSample(images[[0, 3]], cams.select([0, 3]), images[[1, 2]], cams.select([1, 2]), "k")
+    assert nearest_context_images(sample)[:, 0, 0, 0].tolist() == [0.0, 3.0]
 
 
 def _cameras(n: int = 2):

@@ -121,13 +121,37 @@ def real_scene_source(config: ModelConfig, root, seed: int, scene_names: list[st
     return source
 
 
-def make_source(data: str, config: ModelConfig, seed: int, scene_names: list[str] | None = None) -> Source:
-    """``procedural`` or a directory of real scenes -> a :data:`Source`."""
+MIX_PREFIX = "mix:"
+"""``--data mix:DIR``: even sample indices are procedural scenes, odd ones real scenes under DIR."""
+
+
+def make_source(data: str, config: ModelConfig, seed: int, holdout: list[str] | None = None) -> Source:
+    """``procedural``, a directory of real scenes, or ``mix:DIR`` (both, alternating) -> a :data:`Source`.
+
+    ``holdout`` names real scenes left out of training (kept for validation).
+    """
     if data == "procedural":
         return procedural_source(config, seed)
-    if not pathlib.Path(data).is_dir():
-        raise InputError(f"data must be 'procedural' or a directory of scenes, got {data!r}")
-    return real_scene_source(config, data, seed, scene_names)
+    real_root = data[len(MIX_PREFIX):] if data.startswith(MIX_PREFIX) else data
+    if not pathlib.Path(real_root).is_dir():
+        raise InputError(f"data must be 'procedural', a directory of scenes or 'mix:DIRECTORY', got {data!r}")
+    real = real_scene_source(config, real_root, seed, training_scenes(real_root, holdout or []))
+    if not data.startswith(MIX_PREFIX):
+        return real
+    procedural = procedural_source(config, seed)
+    return lambda index: procedural(index // 2) if index % 2 == 0 else real(index // 2)
+
+
+def training_scenes(root, holdout: list[str]) -> list[str]:
+    """Scene folders (with ``cameras.json``) under ``root`` minus ``holdout``; every held-out name must exist."""
+    names = sorted(p.parent.name for p in pathlib.Path(root).glob("*/cameras.json"))
+    missing = sorted(set(holdout) - set(names))
+    if missing:
+        raise InputError(f"held-out scenes not found under {root}: {', '.join(missing)}")
+    kept = [n for n in names if n not in set(holdout)]
+    if not kept:
+        raise DataError(f"no training scenes left under {root} after holding out {len(holdout)}")
+    return kept
 
 
 class StepDataset(torch.utils.data.Dataset):

@@ -7,7 +7,8 @@ Resumable checkpoints (see :mod:`train.checkpoint`), TensorBoard logs and a tqdm
     python -m train.stage1 --preset re10k --data procedural --steps 100000 --out runs/stage1-re10k
     torchrun --nproc_per_node 4 -m train.stage1 ...        # DDP, one scene per GPU per step
 
-Rerunning the same command after an interruption continues from the last checkpoint.
+Rerunning the same command after an interruption continues from the last checkpoint. SIGTERM (or
+``--time-limit-s``) ends a run cleanly after the current step, with a checkpoint of that step.
 """
 
 from __future__ import annotations
@@ -17,6 +18,9 @@ import json
 import math
 import os
 import pathlib
+import signal
+import threading
+import time
 from dataclasses import asdict, dataclass, fields
 
 import torch
@@ -43,6 +47,7 @@ class TrainConfig:
 
     preset: str = "re10k"
     data: str = "procedural"
+    holdout: str = ""
     out: str = "runs/stage1"
     steps: int = 100_000
     lr: float = 1e-4
@@ -57,6 +62,27 @@ class TrainConfig:
     seed: int = 0
     device: str = "auto"
     workers: int = 4
+    time_limit_s: float = 0.0
+
+
+LOGGED = ("loss", "mse", "lpips", "psnr", "grad_norm", "lr")
+"""Training metrics written every ``log_every`` steps (TensorBoard and :data:`METRICS_FILE`)."""
+
+METRICS_FILE = "metrics.jsonl"
+"""One JSON object per logged step under the run folder (read by :mod:`train.validate` for curves)."""
+
+
+def append_metrics(path: pathlib.Path, record: dict) -> None:
+    """Append one JSON line (flushed, so an interrupted run keeps every logged step)."""
+    with open(path, "a") as f:
+        f.write(json.dumps(record) + "\n")
+
+
+def truncate_metrics(path: pathlib.Path, last_step: int) -> None:
+    """Drop logged steps after ``last_step`` (a resumed run repeats them)."""
+    if path.is_file():
+        kept = [line for line in path.read_text().splitlines() if line and json.loads(line)["step"] <= last_step]
+        path.write_text("".join(line + "\n" for line in kept))
 
 
 def lr_factor(step: int, warmup: int, total: int) -> float:
@@ -145,7 +171,7 @@ def train(config: TrainConfig, source: Source | None = None, model_config: Model
     if device.type == "cuda" and world > 1:
         device = torch.device("cuda", local_rank)
     model_config = model_config or get_preset(config.preset)
-    source = source or make_source(config.data, model_config, config.seed)
+    source = source or make_source(config.data, model_config, config.seed, [n for n in config.holdout.split(",") if n])
     out = pathlib.Path(config.out)
     torch.manual_seed(config.seed + rank)
 
@@ -170,9 +196,13 @@ def train(config: TrainConfig, source: Source | None = None, model_config: Model
         out.mkdir(parents=True, exist_ok=True)
         (out / "config.json").write_text(json.dumps({"train": asdict(config), "model": model_config.to_dict()}, indent=1))
         writer = SummaryWriter(str(out / "tensorboard"), purge_step=start)
+        truncate_metrics(out / METRICS_FILE, start)
     bar = tqdm(total=config.steps, initial=start, disable=not progress or rank != 0, desc="stage1", dynamic_ncols=True)
     metrics: dict = {}
     extra = {"train": asdict(config), "model": model_config.to_dict()}
+    began = time.monotonic()
+    stop_requested = threading.Event()
+    previous_handler = signal.signal(signal.SIGTERM, lambda *_: stop_requested.set())
     try:
         for step, sample in zip(range(start, config.steps), loader):
             metrics = train_step(trained, lpips, optimizer, scheduler, sample.to(device), config)
@@ -180,20 +210,35 @@ def train(config: TrainConfig, source: Source | None = None, model_config: Model
             bar.update(1)
             bar.set_postfix(loss=f"{metrics['loss']:.4f}", psnr=f"{metrics['psnr']:.2f}")
             if writer is not None and (step + 1) % config.log_every == 0:
-                for name in ("loss", "mse", "lpips", "psnr", "grad_norm", "lr"):
+                for name in LOGGED:
                     writer.add_scalar(f"train/{name}", metrics[name], step + 1)
-            if (step + 1) % config.checkpoint_every == 0 or step + 1 == config.steps:
+                append_metrics(out / METRICS_FILE, {"step": step + 1, **{k: metrics[k] for k in LOGGED}})
+            stop = stop_requested.is_set() or (config.time_limit_s > 0 and time.monotonic() - began > config.time_limit_s)
+            stop = _agree(stop, world, device)
+            if (step + 1) % config.checkpoint_every == 0 or step + 1 == config.steps or stop:
                 if rank == 0:
                     save_checkpoint(out, step + 1, model, optimizer, scheduler, extra, keep=config.keep_checkpoints)
                 if world > 1:
                     dist.barrier()
+            if stop:
+                break
     finally:
+        signal.signal(signal.SIGTERM, previous_handler)
         bar.close()
         if writer is not None:
             writer.close()
         if world > 1:
             dist.destroy_process_group()
     return metrics
+
+
+def _agree(stop: bool, world: int, device: torch.device) -> bool:
+    """True on every rank when any rank wants to stop (so all ranks save and leave at the same step)."""
+    if world <= 1:
+        return stop
+    flag = torch.tensor([float(stop)], device=device)
+    dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+    return bool(flag.item())
 
 
 def _loader(source: Source, start: int, steps: int, rank: int, world: int, workers: int):
