@@ -39,9 +39,10 @@ MAX_EXTENT_SIGMAS = 3.33
 ROW_WIDTH = 10
 """Scalars per projected row."""
 
-BAD_MEANS, BAD_QUATS, BAD_SCALES, BAD_OPACITIES, BAD_COLORS, BAD_VIEWMATS, BAD_KS, ZERO_QUATS = range(8)
+(BAD_MEANS, BAD_QUATS, BAD_SCALES, BAD_OPACITIES, BAD_COLORS, BAD_VIEWMATS, BAD_KS, ZERO_QUATS,
+ HUGE_COVARIANCE) = range(9)
 """Slots of the validation flag array (count of offending rows per argument)."""
-NUM_FLAGS = 8
+NUM_FLAGS = 9
 
 
 @wp.func
@@ -65,9 +66,18 @@ def camera_center(viewmat: Any):
 
 
 @wp.func
+def quat_scale(quat: Any):
+    """Largest absolute component of a quaternion (0 only for the zero quaternion)."""
+    return wp.max(wp.max(wp.abs(quat[0]), wp.abs(quat[1])), wp.max(wp.abs(quat[2]), wp.abs(quat[3])))
+
+
+@wp.func
 def camera_covariance(viewmat: Any, quat: Any, scale: Any):
-    """Camera-space 3x3 covariance ``R_cam (R_q S)(R_q S)^T R_cam^T`` from a wxyz quaternion and scales."""
-    q = wp.normalize(quat)
+    """Camera-space 3x3 covariance ``R_cam (R_q S)(R_q S)^T R_cam^T`` from a wxyz quaternion and scales.
+
+    The quaternion is divided by its largest component before normalising, so |q|^2 neither underflows nor
+    overflows for any non-zero finite q (float32 |q| < 1e-19 or > 1e19)."""
+    q = wp.normalize(quat / quat_scale(quat))
     w = q[0]
     x = q[1]
     y = q[2]
@@ -187,7 +197,7 @@ def validate_inputs(
         flag_non_finite3(scale, flags, BAD_SCALES)
         if not (wp.isfinite(quat[0]) and wp.isfinite(quat[1]) and wp.isfinite(quat[2]) and wp.isfinite(quat[3])):
             wp.atomic_add(flags, BAD_QUATS, 1)
-        elif wp.dot(quat, quat) == type(opacity)(0.0):
+        elif quat_scale(quat) == type(opacity)(0.0):
             wp.atomic_add(flags, ZERO_QUATS, 1)
         if not wp.isfinite(opacity):
             wp.atomic_add(flags, BAD_OPACITIES, 1)
@@ -272,6 +282,10 @@ def project_gaussians(
     if not (p[2] > near and p[2] < far and wp.isfinite(p[0]) and wp.isfinite(p[1])):
         return
     cov2d = projected_covariance(p, camera_covariance(viewmat, quat, scale), K, width, height)
+    if not (wp.isfinite(cov2d[0, 0]) and wp.isfinite(cov2d[0, 1]) and wp.isfinite(cov2d[1, 1])):
+        if wp.isfinite(scale[0]) and wp.isfinite(scale[1]) and wp.isfinite(scale[2]):
+            wp.atomic_add(flags, HUGE_COVARIANCE, 1)
+        return
     det_orig = wp.determinant(cov2d)
     blurred = cov2d + wp.identity(n=2, dtype=type(opacity)) * eps2d
     det = wp.determinant(blurred)

@@ -23,24 +23,26 @@ SH_HIGHER_ORDER_SCALE = 0.1
 
 
 def _bounds(near: torch.Tensor, far: torch.Tensor, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Inverse near/far [V] reshaped to broadcast against a [V,...] tensor ``like``."""
+    """(1/far, 1/near - 1/far) [V] reshaped to broadcast against a [V,...] tensor ``like``; the difference is
+    taken in the bounds' own dtype (float64 cameras) before the cast, so near ~ far keeps its precision."""
     if near.shape != (like.shape[0],) or far.shape != (like.shape[0],):
         raise InputError(f"near/far must have shape [{like.shape[0]}] (one bound per view), "
                          f"got {tuple(near.shape)} and {tuple(far.shape)}")
     view = (-1,) + (1,) * (like.dim() - 1)
-    return (1.0 / near).reshape(view).to(like.dtype), (1.0 / far).reshape(view).to(like.dtype)
+    inv_far = 1.0 / far
+    return inv_far.reshape(view).to(like.dtype), (1.0 / near - inv_far).reshape(view).to(like.dtype)
 
 
 def depth_from_normalized(s: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
     """Eq. 8: metric depth [V,...] from normalised inverse depth ``s`` [V,...] in [0,1] and bounds near/far [V]."""
-    inv_near, inv_far = _bounds(near, far, s)
-    return 1.0 / (inv_far + s * (inv_near - inv_far))
+    inv_far, span = _bounds(near, far, s)
+    return 1.0 / (inv_far + s * span)
 
 
 def normalized_from_depth(depth: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
     """Eq. 13: normalised inverse depth S_enc [V,...] of metric depth [V,...] (0 at far, 1 at near)."""
-    inv_near, inv_far = _bounds(near, far, depth)
-    return (1.0 / depth - inv_far) / (inv_near - inv_far)
+    inv_far, span = _bounds(near, far, depth)
+    return (1.0 / depth - inv_far) / span
 
 
 def _check_feature_grid(feature: torch.Tensor, height: int, width: int) -> None:

@@ -273,7 +273,8 @@ def _kernel_cameras(cameras: Cameras, like: torch.Tensor, width: int, height: in
         # the given neighbours tensor is kept alive with the entry, so its id cannot be reused while cached
         return _KernelCameras(_intrinsics_vector(cams), cams.c2w.contiguous(), rel, index), neighbours
 
-    return cameras.memoized(key, build)[0]
+    with torch.autocast(like.device.type, enabled=False):  # camera algebra in full precision, cached as such
+        return cameras.memoized(key, build)[0]
 
 
 def _intrinsics_vector(cameras: Cameras) -> torch.Tensor:

@@ -24,11 +24,14 @@ import torch
 import warp as wp
 
 from ..device import (
-    check_finite, check_tensor, common_device, launch, matrices, to_warp, validation_enabled, vectors, warp_dtype,
-    warp_scope,
+    FLOAT_DTYPES, check_finite, check_tensor, common_device, launch, matrices, to_warp, validation_enabled, vectors,
+    warp_dtype, warp_scope,
 )  # fmt: skip
+from ..cameras import rigid_inverse
 from ..errors import InputError, RasterMemoryError
 from ..kernels import raster_composite, raster_project, raster_tiles
+
+_LOW_PRECISION = (torch.float16, torch.bfloat16)
 
 DEFAULT_MAX_INTERSECTION_BYTES = 4 << 30
 """Default budget for the intersection sort buffers (keys and values, double-buffered): 4 GiB."""
@@ -405,28 +408,47 @@ def _prepare(means, quats, scales, opacities, colors, viewmats, Ks, width, heigh
     """Check every argument; return contiguous tensors (cameras in the dtype of ``means``), coeffs
     ``[N,K,3]`` and the settings."""
     dims: dict[str, int] = {}
-    means = check_tensor("means", means, ("N", 3), dims=dims)
-    dtype = means.dtype
-    quats = check_tensor("quats", quats, ("N", 4), (dtype,), dims)
-    scales = check_tensor("scales", scales, ("N", 3), (dtype,), dims)
-    opacities = check_tensor("opacities", opacities, ("N",), (dtype,), dims)
+    means = check_tensor("means", means, ("N", 3), (*FLOAT_DTYPES, *_LOW_PRECISION), dims=dims)
+    given = means.dtype
+    quats = check_tensor("quats", quats, ("N", 4), (given,), dims)
+    scales = check_tensor("scales", scales, ("N", 3), (given,), dims)
+    opacities = check_tensor("opacities", opacities, ("N",), (given,), dims)
     if not isinstance(colors, torch.Tensor) or colors.dim() not in (2, 3):
         raise InputError("colors must be a tensor of shape [N,3] (RGB) or [N,K,3] (SH coefficients)")
-    colors = check_tensor("colors", colors, ("N", 3) if colors.dim() == 2 else ("N", None, 3), (dtype,), dims)
+    colors = check_tensor("colors", colors, ("N", 3) if colors.dim() == 2 else ("N", None, 3), (given,), dims)
     viewmats = check_tensor("viewmats", viewmats, ("B", 4, 4), dims=dims)
     Ks = check_tensor("Ks", Ks, ("B", 3, 3), dims=dims)
     if background is not None:
-        background = check_tensor("background", background, ("B", 3), (dtype,), dims)
+        background = check_tensor("background", background, ("B", 3), (given,), dims)
+    if given in _LOW_PRECISION:  # half inputs (autocast) are computed in float32, like the geometry ops
+        means, quats, scales, opacities, colors = (t.float() for t in (means, quats, scales, opacities, colors))
+        background = None if background is None else background.float()
+    dtype = means.dtype
     common_device(
         means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmats=viewmats, Ks=Ks,
         background=background,
     )  # fmt: skip
     settings = _make_settings(colors, width, height, near, far, mode, sh_degree, render_depth, tile_size)
-    viewmats = viewmats.detach().to(dtype).contiguous()
+    means, viewmats = _camera_relative(means, viewmats.detach())
+    viewmats = viewmats.to(dtype).contiguous()
     Ks = Ks.detach().to(dtype).contiguous()
     coeffs = colors if colors.dim() == 3 else colors.unsqueeze(1)
     _check_key_bits(viewmats.shape[0], settings)
     return means, quats, scales, opacities, coeffs, viewmats, Ks, background, settings
+
+
+def _camera_relative(means: torch.Tensor, viewmats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Means and viewmats re-expressed about the mean camera centre ``o`` (rounded to the means' dtype), so that
+    float32 positions are relative to the cameras: ``R x + t`` no longer cancels for a scene far from the world
+    origin. ``means - o`` is one elementwise op (its gradient is the identity); ``viewmats @ T(o)`` is composed in
+    float64. A pure translation of the world: images and gradients are unchanged."""
+    if means.dtype == torch.float64 or means.shape[0] == 0:
+        return means, viewmats
+    with torch.autocast(means.device.type, enabled=False):
+        origin = rigid_inverse(viewmats.to(torch.float64))[:, :3, 3].mean(dim=0).to(means.dtype)
+        shift = torch.eye(4, dtype=torch.float64, device=viewmats.device)
+        shift[:3, 3] = origin.to(torch.float64)
+        return means - origin, viewmats.to(torch.float64) @ shift
 
 
 def _make_settings(colors, width, height, near, far, mode, sh_degree, render_depth, tile_size) -> _Settings:
@@ -500,6 +522,11 @@ def _raise_on_flags(flag_values: list[int]) -> None:
     for slot, name in _ARGUMENT_OF_FLAG.items():
         if flag_values[slot]:
             raise InputError(f"{name} holds non-finite values (NaN or Inf) in {flag_values[slot]} row(s)")
+    if flag_values[raster_project.HUGE_COVARIANCE]:
+        raise InputError(
+            f"scales: {flag_values[raster_project.HUGE_COVARIANCE]} (camera, Gaussian) pair(s) have a 2D covariance "
+            "that overflows the float dtype (scales far too large); use float64 or smaller scales"
+        )
     if flag_values[raster_project.ZERO_QUATS]:
         raise InputError(f"quats has {flag_values[raster_project.ZERO_QUATS]} zero quaternion(s) (no rotation)")
     if len(flag_values) > raster_project.NUM_FLAGS and flag_values[raster_project.NUM_FLAGS]:
