@@ -11,7 +11,8 @@ from conftest import needs_lpips
 from train.checkpoint import (
     MAX_FILE_BYTES, join_tensors, latest_checkpoint, load_checkpoint, save_checkpoint, split_tensors,
 )
-from train.data import make_source, split_context_targets, training_scenes
+from train.data import make_source, training_scenes
+from codecsplat_warp.data import split_context_targets
 from train.pack_scenes import pack_scene
 from train.stage1 import METRICS_FILE, TrainConfig, lr_factor, make_optimizer, parse_args, train
 from train.validate import nearest_context_images, plot_curve, read_metrics, SceneScore

@@ -14,6 +14,7 @@ from typing import Callable
 import torch
 
 from codecsplat_warp.cameras import Cameras
+from codecsplat_warp.data.views import split_context_targets
 from codecsplat_warp.errors import DataError, InputError
 from codecsplat_warp.model.config import ModelConfig
 
@@ -40,24 +41,6 @@ class TrainingSample:
 
 
 Source = Callable[[int], TrainingSample]
-
-
-def split_context_targets(cameras: Cameras, anchor: int, num_context: int, num_target: int) -> tuple[list[int], list[int]]:
-    """Context and target view indices among the ``num_context + num_target`` views nearest to ``anchor``.
-
-    The views are ordered by camera-centre distance to the anchor; the context takes evenly spaced ranks
-    including the nearest (the anchor) and the farthest, the targets the ranks in between, so targets
-    lie among the context views rather than outside them.
-    """
-    total = num_context + num_target
-    if cameras.num_views < total:
-        raise DataError(f"scene has {cameras.num_views} views, need {total} ({num_context} context + {num_target} target)")
-    centers = cameras.centers.double()
-    order = torch.argsort((centers - centers[anchor]).norm(dim=-1), stable=True)[:total].tolist()
-    ranks = torch.linspace(0, total - 1, num_context).round().long().tolist()
-    context = [order[r] for r in ranks]
-    targets = [order[r] for r in range(total) if r not in ranks]
-    return context, targets
 
 
 def _sample_from_scene(images: torch.Tensor, cameras: Cameras, key: str, context: list[int],

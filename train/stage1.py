@@ -22,6 +22,7 @@ import signal
 import threading
 import time
 from dataclasses import asdict, dataclass, fields
+from typing import Callable
 
 import torch
 import torch.distributed as dist
@@ -125,10 +126,38 @@ def make_optimizer(model: torch.nn.Module, config: TrainConfig):
     return optimizer, scheduler
 
 
-def train_step(model, lpips, optimizer, scheduler, sample: TrainingSample, config: TrainConfig) -> dict:
+LossFn = Callable[[torch.nn.Module, LPIPS, TrainingSample, TrainConfig, int], tuple[torch.Tensor, dict]]
+"""``loss(model, lpips, sample, config, step) -> (loss, float metrics)`` of one training step."""
+
+
+@dataclass(frozen=True)
+class Stage:
+    """What a training stage brings to the shared loop of :func:`train` (stage 2: :mod:`train.stage2`).
+
+    Attributes:
+        name: progress-bar label.
+        build_model: ``(model_config, config) -> CodecSplat`` on the CPU, initialised, with the parameters
+            to train (and only those) requiring gradients; called before a checkpoint is resumed.
+        loss: the step's :data:`LossFn`.
+        logged: metrics written every ``log_every`` steps (those a step returns).
+    """
+
+    name: str
+    build_model: Callable[[ModelConfig, TrainConfig], CodecSplat]
+    loss: LossFn
+    logged: tuple[str, ...]
+
+
+STAGE1 = Stage(
+    "stage1", lambda model_config, config: CodecSplat(model_config),
+    lambda model, lpips, sample, config, step: stage1_loss(model, lpips, sample, config.lpips_weight), LOGGED)
+
+
+def train_step(model, lpips, optimizer, scheduler, sample: TrainingSample, config: TrainConfig, step: int = 0,
+               stage: Stage = STAGE1) -> dict:
     """One optimisation step (forward, backward, clip, AdamW, scheduler); returns its metrics."""
     optimizer.zero_grad(set_to_none=True)
-    loss, metrics = stage1_loss(model, lpips, sample, config.lpips_weight)
+    loss, metrics = stage.loss(model, lpips, sample, config, step)
     loss.backward()
     metrics["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip))
     optimizer.step()
@@ -156,7 +185,7 @@ def _lpips_dir(config: TrainConfig) -> str:
 
 
 def train(config: TrainConfig, source: Source | None = None, model_config: ModelConfig | None = None,
-          progress: bool = True) -> dict:
+          progress: bool = True, stage: Stage = STAGE1) -> dict:
     """Run (or resume) stage 1 until ``config.steps``; returns the metrics of the last step run
     (with ``step`` and ``resumed_from``, the step of the checkpoint it started from; empty if none was run).
 
@@ -165,6 +194,7 @@ def train(config: TrainConfig, source: Source | None = None, model_config: Model
         source: sample source (default: :func:`train.data.make_source` of ``config.data``).
         model_config: network sizes (default: the ``config.preset`` preset).
         progress: show a tqdm bar on rank 0.
+        stage: model, loss and logged metrics of the stage (default: stage 1).
     """
     rank, world, local_rank = _distributed()
     device = resolve_device(config.device)
@@ -175,7 +205,7 @@ def train(config: TrainConfig, source: Source | None = None, model_config: Model
     out = pathlib.Path(config.out)
     torch.manual_seed(config.seed + rank)
 
-    model = CodecSplat(model_config).to(device)
+    model = stage.build_model(model_config, config).to(device)
     optimizer, scheduler = make_optimizer(model, config)
     start = 0
     checkpoint = latest_checkpoint(out)
@@ -197,7 +227,7 @@ def train(config: TrainConfig, source: Source | None = None, model_config: Model
         (out / "config.json").write_text(json.dumps({"train": asdict(config), "model": model_config.to_dict()}, indent=1))
         writer = SummaryWriter(str(out / "tensorboard"), purge_step=start)
         truncate_metrics(out / METRICS_FILE, start)
-    bar = tqdm(total=config.steps, initial=start, disable=not progress or rank != 0, desc="stage1", dynamic_ncols=True)
+    bar = tqdm(total=config.steps, initial=start, disable=not progress or rank != 0, desc=stage.name, dynamic_ncols=True)
     metrics: dict = {}
     extra = {"train": asdict(config), "model": model_config.to_dict()}
     began = time.monotonic()
@@ -205,14 +235,15 @@ def train(config: TrainConfig, source: Source | None = None, model_config: Model
     previous_handler = signal.signal(signal.SIGTERM, lambda *_: stop_requested.set())
     try:
         for step, sample in zip(range(start, config.steps), loader):
-            metrics = train_step(trained, lpips, optimizer, scheduler, sample.to(device), config)
+            metrics = train_step(trained, lpips, optimizer, scheduler, sample.to(device), config, step, stage)
             metrics.update(step=step + 1, resumed_from=start)
             bar.update(1)
             bar.set_postfix(loss=f"{metrics['loss']:.4f}", psnr=f"{metrics['psnr']:.2f}")
             if writer is not None and (step + 1) % config.log_every == 0:
-                for name in LOGGED:
-                    writer.add_scalar(f"train/{name}", metrics[name], step + 1)
-                append_metrics(out / METRICS_FILE, {"step": step + 1, **{k: metrics[k] for k in LOGGED}})
+                logged = {k: metrics[k] for k in stage.logged if k in metrics}
+                for name, value in logged.items():
+                    writer.add_scalar(f"train/{name}", value, step + 1)
+                append_metrics(out / METRICS_FILE, {"step": step + 1, **logged})
             stop = stop_requested.is_set() or (config.time_limit_s > 0 and time.monotonic() - began > config.time_limit_s)
             stop = _agree(stop, world, device)
             if (step + 1) % config.checkpoint_every == 0 or step + 1 == config.steps or stop:
@@ -249,14 +280,15 @@ def _loader(source: Source, start: int, steps: int, rank: int, world: int, worke
                                        persistent_workers=False, prefetch_factor=2 if workers else None)
 
 
-def parse_args(argv: list[str] | None = None) -> TrainConfig:
-    """Command line -> :class:`TrainConfig` (every field is a flag)."""
-    parser = argparse.ArgumentParser(prog="python -m train.stage1", description=__doc__.split("\n\n")[0])
-    for field in fields(TrainConfig):
-        kind = {"int": int, "float": float}.get(str(field.type), str)
+def parse_args(argv: list[str] | None = None, config_class: type = TrainConfig, prog: str = "python -m train.stage1",
+               description: str = __doc__.split("\n\n")[0]) -> TrainConfig:
+    """Command line -> ``config_class`` (:class:`TrainConfig` or a subclass; every field is a flag)."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    for field in fields(config_class):
+        kind = {"int": int, "float": float}.get(str(field.type).removesuffix(" | None"), str)
         parser.add_argument("--" + field.name.replace("_", "-"), type=kind, default=field.default)
     args = parser.parse_args(argv)
-    config = TrainConfig(**vars(args))
+    config = config_class(**vars(args))
     if config.steps < 1 or config.checkpoint_every < 1 or config.log_every < 1:
         raise InputError("--steps, --checkpoint-every and --log-every must be >= 1")
     return config

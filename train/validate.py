@@ -1,7 +1,7 @@
 """Held-out validation of a stage-1 run and its training curve.
 
 For each held-out real scene, a fixed set of samples (anchor view, nearest context views, targets in
-between; see :func:`train.data.split_context_targets`) is rendered by the run's latest checkpoint and
+between; see :func:`codecsplat_warp.data.split_context_targets`) is rendered by the run's latest checkpoint and
 compared with the "copy the nearest context view" baseline (the context image whose camera centre is
 closest to the target's, returned unchanged). PSNR on [0,1]-clipped images.
 

@@ -33,7 +33,9 @@ from .preprocess import DATASET_CONFIGS, DatasetConfig, preprocess_scene, resize
 from .procedural import ProceduralConfig, procedural_scene, render
 from .scene import EncodedImages, Scene
 from .scene_json import is_scene_json, load_scene_json
-from .views import BoundedSamplerConfig, ViewSelection, load_evaluation_index, sample_bounded_views
+from .views import (
+    BoundedSamplerConfig, ViewSelection, load_evaluation_index, sample_bounded_views, split_context_targets,
+)
 
 FORMATS = ("scene-json", "llff", "nerf", "neus", "middlebury", "colmap")
 """Format names accepted by :func:`load_scene`'s ``format`` argument."""
@@ -127,5 +129,5 @@ __all__ = [
     "is_colmap_model", "load_chunk_scene", "load_colmap", "load_evaluation_index", "load_index", "load_llff",
     "load_middlebury", "load_nerf", "load_neus", "load_scene", "load_scene_json", "make_dataloader",
     "preprocess_scene", "procedural_scene", "read_chunk", "read_model", "render", "resize_and_crop",
-    "sample_bounded_views", "write_chunks",
+    "sample_bounded_views", "split_context_targets", "write_chunks",
 ]

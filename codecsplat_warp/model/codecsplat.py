@@ -1,26 +1,39 @@
-"""CodecSplat network, codec-free path (paper §3.2-3.4, stage 1 of §3.5).
+"""CodecSplat network (paper §3.2-3.4): the codec-free path of stage 1 and the codec path of stage 2.
+
+Codec-free (``forward(images, cameras)``, stage 1)::
 
     images, cameras --MVEnc--> F_mv, P_depth, D_enc --FeatHead--> F_g --R_pre--> F_c
     (F_c, D_enc) --GSHead--> per-pixel Gaussians --Map 2D->3D--> world Gaussians --rasterize--> images
 
-The stage-2 codec sits between ``F_c`` and the Gaussian head; :meth:`CodecSplat.decode_gaussians` is the
-part it reuses (with its own depth head and post-codec refiner, see :mod:`.heads` and :mod:`.refine`).
+With the codec (``CodecSplat(config, codec=True)``; ``forward(images, cameras, lam)`` in stage 2,
+:meth:`CodecSplat.encode` / :meth:`CodecSplat.decode` for bitstreams)::
+
+    F_c --LatentCodec(lambda)--> latents (entropy coded, one stream per view) --> F^_c
+    F^_c --DepthHead--> S, D^ ; F^_c + R_post(F^_c, A(F^_c, D^), S) --GSHead(., D^)--> Map 2D->3D --> Gaussians
+
+The decoder side uses only the bitstream: its cameras, lambda and latents; never images or D_enc.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 
 from ..cameras import Cameras
-from ..device import check_finite, check_tensor, common_device
-from ..errors import DeviceMismatchError, InputError
+from ..codec.bitstream import pack_bitstream, parse_bitstream
+from ..codec.latent import LatentCodec, Timer, check_lambda, no_timer
+from ..codec.scene import DecodedScene, EncodedScene
+from ..device import check_finite, check_tensor, common_device, resolve_device
+from ..errors import BitstreamError, DeviceMismatchError, InputError
+from ..ops.geometry import nearest_views
 from ..ops.raster import rasterize
-from .config import MODEL_STRIDE, ModelConfig
+from .config import FEATURE_STRIDE, MODEL_STRIDE, ModelConfig
 from .feathead import FeatHead
 from .gaussians import Gaussians, map_to_world
-from .heads import GaussianHead
+from .heads import DepthHead, GaussianHead
 from .mvenc import MonoBackbone, MVEnc
+from .pretrained import model_id
 from .refine import Refiner
 
 RENDER_NEAR_FRACTION = 0.5
@@ -31,51 +44,157 @@ RENDER_FAR_FACTOR = 2.0
 
 
 class CodecSplat(nn.Module):
-    """Feed-forward Gaussian generator: context views -> F_g, F_c, D_enc, S_enc and world-space Gaussians.
+    """Feed-forward Gaussian generator and scene codec.
 
     Args:
         config: sizes (see :mod:`.config` presets).
         mono_backbone: optional pretrained monocular feature extractor (see :class:`.mvenc.MonoBackbone`).
+        codec: add the stage-2 modules (latent codec, decoder depth head, post-codec refiner); a stage-1
+            model has none, so that each of its parameters takes part in the codec-free loss.
     """
 
-    def __init__(self, config: ModelConfig, mono_backbone: MonoBackbone | None = None):
+    def __init__(self, config: ModelConfig, mono_backbone: MonoBackbone | None = None, codec: bool = False):
         super().__init__()
         self.config = config
         self.mvenc = MVEnc(config, mono_backbone)
         self.feat_head = FeatHead(config)
         self.refine_pre = Refiner(config)
         self.gs_head = GaussianHead(config)
+        self.codec = LatentCodec(config) if codec else None
+        self.depth_head = DepthHead(config) if codec else None
+        self.refine_post = Refiner(config) if codec else None
 
-    def forward(self, images: torch.Tensor, cameras: Cameras) -> dict:
-        """Run the codec-free path.
+    @property
+    def has_codec(self) -> bool:
+        """Whether the stage-2 modules exist (see ``codec`` of the constructor)."""
+        return self.codec is not None
+
+    def codec_modules(self) -> list[nn.Module]:
+        """The stage-2 modules (trained in stage 2, the rest frozen): codec, depth head, post-codec refiner."""
+        self._require_codec()
+        return [self.codec, self.depth_head, self.refine_post]
+
+    def forward(self, images: torch.Tensor, cameras: Cameras, lam: float | None = None) -> dict:
+        """Run the codec-free path, or with ``lam`` the codec path (stage 2, differentiable).
 
         Args:
             images: [V,3,H,W] float in [0,1], V >= 2, H and W multiples of 4 equal to the cameras' size.
             cameras: the V context cameras, on the model's device.
+            lam: None for the codec-free path; a rate-distortion lambda in [16, 1024] for the codec path
+                (noisy quantisation in training mode, the coder's rounding in eval mode).
 
         Returns:
             dict with ``F_mv`` [V,C,H/4,W/4], ``P_depth`` [V,D,H/4,W/4], ``F_g`` and ``F_c`` [V,C_F,H/2,W/2],
             ``D_enc`` [V,H,W] (metric, in [near, far]), ``S_enc`` [V,H,W] (Eq. 13, in [0,1]), ``neighbours``
-            [V,M] and ``gaussians`` (:class:`Gaussians`, N = V*H*W, float32).
+            [V,M] and ``gaussians`` (:class:`Gaussians`, N = V*H*W, float32): codec-free from (F_c, D_enc),
+            or with ``lam`` decoded from F^_c; with ``lam`` also ``F_hat`` [V,C_F,H/2,W/2] (F^_c), ``S`` and
+            ``D_hat`` [V,H,W] (decoder depth, Eqs. 7-8) and ``rate_bits`` (scalar, estimated bits of all views).
 
         Raises:
-            InputError: bad shape, dtype, size or values; DeviceMismatchError: inputs not on the model's device.
+            InputError: bad shape, dtype, size or values, lambda out of range, ``lam`` without a codec;
+            DeviceMismatchError: inputs not on the model's device.
         """
         images = self._check_inputs(images, cameras)
         enc = self.mvenc(images, cameras)
         f_g = self.feat_head(images, enc.features, enc.prob)
         f_c = self.refine_pre(f_g, enc.depth, cameras, enc.neighbours)
-        return {
-            "F_mv": enc.features, "P_depth": enc.prob, "F_g": f_g, "F_c": f_c, "D_enc": enc.depth,
-            "S_enc": enc.normalized_depth, "neighbours": enc.neighbours,
-            "gaussians": self.decode_gaussians(f_c, enc.depth, cameras),
-        }
+        out = {"F_mv": enc.features, "P_depth": enc.prob, "F_g": f_g, "F_c": f_c, "D_enc": enc.depth,
+               "S_enc": enc.normalized_depth, "neighbours": enc.neighbours}
+        if lam is None:
+            out["gaussians"] = self.decode_gaussians(f_c, enc.depth, cameras)
+            return out
+        self._require_codec()
+        coded = self.codec(f_c, lam)
+        s, depth, gaussians = self.decode_feature(coded.feature, cameras, enc.neighbours)
+        out.update(F_hat=coded.feature, S=s, D_hat=depth, rate_bits=coded.bits.sum(), gaussians=gaussians)
+        return out
+
+    def decode_feature(self, feature: torch.Tensor, cameras: Cameras,
+                       neighbours: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, Gaussians]:
+        """§3.4 from the reconstructed feature F^_c [V,C_F,H/2,W/2]: depth head (S, D^ [V,H,W]), post-codec
+        refiner with A(F^_c, D^) (Eq. 5), GS head, Map 2D->3D. ``neighbours`` [V,M] default to the cameras'
+        nearest views (as MVEnc picks them). Returns (S, D^, Gaussians)."""
+        s, depth = self.depth_head(feature, cameras)
+        if neighbours is None:
+            neighbours = nearest_views(cameras, min(self.config.neighbours, cameras.num_views - 1)).long()
+        refined = self.refine_post(feature, depth, cameras, neighbours)
+        return s, depth, self.decode_gaussians(refined, depth, cameras)
 
     def decode_gaussians(self, feature: torch.Tensor, depth: torch.Tensor, cameras: Cameras) -> Gaussians:
         """Eqs. 9-10: GSHead(feature [V,C_F,H/2,W/2], depth [V,H,W]) then Map 2D->3D -> world Gaussians."""
         pixels = self.gs_head(feature, depth, cameras)
         with torch.autocast(feature.device.type, enabled=False):  # world positions and SH rotations in float32
             return map_to_world(pixels, depth.float(), cameras)
+
+    # ----------------------------------------------------------------------------------------------
+    # Bitstreams
+    @torch.no_grad()
+    def encode_scene(self, images: torch.Tensor, cameras: Cameras, lam: float, timer: Timer = no_timer) -> EncodedScene:
+        """Encoder: context views -> scene bitstream (Eq. 7) and the coded symbols.
+
+        MVEnc, FeatHead and R_pre give F_c (bf16 autocast on CUDA), the codec quantises and range codes its
+        latents, and the bitstream packs them with the cameras (at the model's float precision) and lambda
+        (as float32, the value the decoder will use). ``timer`` times the phases ``entropy`` and
+        ``bitstream`` (benchmarks; the rest is network time).
+
+        Args:
+            images: [V,3,H,W] in [0,1]; cameras: the V context cameras (both on the model's device).
+            lam: rate-distortion trade-off in [16, 1024]; larger is more bytes and better quality.
+        Raises:
+            InputError / DeviceMismatchError: as :meth:`forward`; InputError if the model has no codec.
+        """
+        self._require_codec()
+        lam = float(np.float32(check_lambda(lam)))
+        images = self._check_inputs(images, cameras)
+        with torch.autocast(images.device.type, dtype=torch.bfloat16, enabled=images.device.type == "cuda"):
+            enc = self.mvenc(images, cameras)
+            f_g = self.feat_head(images, enc.features, enc.prob)
+            f_c = self.refine_pre(f_g, enc.depth, cameras, enc.neighbours)
+            compressed = self.codec.compress(f_c, lam, timer)
+        with timer("bitstream"):
+            data = pack_bitstream(model_id(self), lam, cameras.to(dtype=self._dtype()), compressed.streams)
+        return EncodedScene(data, [len(s) for s in compressed.streams], compressed.symbols, compressed.bits)
+
+    def encode(self, images: torch.Tensor, cameras: Cameras, lam: float) -> bytes:
+        """The scene bitstream of :meth:`encode_scene` (self-contained: cameras and lambda inside)."""
+        return self.encode_scene(images, cameras, lam).data
+
+    @torch.no_grad()
+    def decode_scene(self, data: bytes, device=None, timer: Timer = no_timer) -> DecodedScene:
+        """Decoder (§3.4): bitstream -> latents -> F^_c -> depth head -> R_post -> GS head -> Gaussians.
+
+        Uses only the bitstream (cameras, lambda, latents). Runs on the model's device (bf16 autocast on
+        CUDA outside the float64 prior path). ``timer`` times ``bitstream`` (parsing) and ``entropy``.
+
+        Args:
+            data: a bitstream written by :meth:`encode` with this model.
+            device: where to decode; None for the model's device, otherwise it must be that device.
+        Raises:
+            BitstreamError: truncated, corrupt, foreign (another model's), or newer-version input.
+            DeviceMismatchError: ``device`` is not the model's device.
+        """
+        self._require_codec()
+        param = next(self.parameters())
+        if device is not None and not _same_device(resolve_device(device), param.device):
+            raise DeviceMismatchError(f"decode on {resolve_device(device)} needs the model there (it is on "
+                                      f"{param.device}): move it with model.to(device)")
+        with timer("bitstream"):
+            parsed = parse_bitstream(data)
+            expected = model_id(self)
+            if parsed.header.model_id != expected:
+                raise BitstreamError(f"the bitstream was written by model {parsed.header.model_id}, but this model is "
+                                     f"{expected}: decode it with the model that encoded it")
+        cameras = parsed.cameras.to(param.device, param.dtype)
+        grid_h, grid_w = cameras.height // FEATURE_STRIDE, cameras.width // FEATURE_STRIDE
+        with torch.autocast(param.device.type, dtype=torch.bfloat16, enabled=param.device.type == "cuda"):
+            feature, latents = self.codec.decompress(parsed.feature_streams, grid_h, grid_w, parsed.header.lam, timer)
+            _, depth, gaussians = self.decode_feature(feature, cameras)
+        return DecodedScene(gaussians=gaussians, cameras=cameras, depth=depth, lam=parsed.header.lam,
+                            header=parsed.header, latents=latents)
+
+    def decode(self, data: bytes, device=None) -> Gaussians:
+        """The Gaussians of :meth:`decode_scene`."""
+        return self.decode_scene(data, device).gaussians
 
     def render(self, gaussians: Gaussians, cameras: Cameras, background: torch.Tensor | None = None,
                render_depth: bool = False) -> dict:
@@ -97,6 +216,14 @@ class CodecSplat(nn.Module):
         return {"rgb": rgb.permute(0, 3, 1, 2), "alpha": alpha[..., 0],
                 "depth": depth[..., 0] if depth is not None else None, "meta": meta}
 
+    def _require_codec(self) -> None:
+        if not self.has_codec:
+            raise InputError("this CodecSplat has no codec (a stage-1 model, built with codec=False): build it with "
+                             "codec=True and train stage 2, or use load_pretrained()")
+
+    def _dtype(self) -> torch.dtype:
+        return next(self.parameters()).dtype
+
     def _check_inputs(self, images: torch.Tensor, cameras: Cameras) -> torch.Tensor:
         if not isinstance(cameras, Cameras):
             raise InputError(f"cameras must be a codecsplat_warp.cameras.Cameras, got {type(cameras).__name__}")
@@ -116,3 +243,9 @@ class CodecSplat(nn.Module):
         if bool(images.min() < 0) or bool(images.max() > 1):
             raise InputError("images must hold values in [0, 1]")
         return images.to(param.dtype)
+
+
+def _same_device(a: torch.device, b: torch.device) -> bool:
+    """Whether two torch devices are the same (``cuda`` without an index is the current CUDA device)."""
+    index = lambda d: torch.cuda.current_device() if d.type == "cuda" and d.index is None else d.index  # noqa: E731
+    return a.type == b.type and (a.type == "cpu" or index(a) == index(b))

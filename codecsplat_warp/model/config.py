@@ -1,4 +1,4 @@
-"""Sizes of the CodecSplat network (codec-free path), as frozen dataclasses with named presets.
+"""Sizes of the CodecSplat network (backbone and latent codec), as frozen dataclasses with named presets.
 
 Presets:
 
@@ -47,6 +47,11 @@ class ModelConfig:
         sh_degree: spherical-harmonics degree of the Gaussian colours (DepthSplat uses 2).
         scale_min_px, scale_max_px: Gaussian scale range in pixel footprints (scale = s * depth / focal).
         max_offset_px: largest sub-pixel offset of a Gaussian centre, in pixels.
+        codec_channels: width of the latent codec (analysis, top-down and synthesis), see
+            :mod:`codecsplat_warp.codec.latent`.
+        codec_latent_channels: channels of each latent level, coarsest first; level l of L sits at stride
+            ``2**(L+1-l)`` of the feature grid (the finest at stride 4, i.e. 1/8 of the image).
+        lambda_channels: size of the rate embedding e_lambda.
     """
 
     name: str = "custom"
@@ -67,11 +72,19 @@ class ModelConfig:
     scale_min_px: float = 0.5
     scale_max_px: float = 15.0
     max_offset_px: float = 0.5
+    codec_channels: int = 48
+    codec_latent_channels: tuple[int, ...] = (16, 24, 32)
+    lambda_channels: int = 64
 
     def __post_init__(self) -> None:
+        latent = self.codec_latent_channels
+        if not isinstance(latent, (list, tuple)) or not latent or any(not isinstance(c, int) or c < 1 for c in latent):
+            raise InputError(f"ModelConfig.codec_latent_channels must be a non-empty list of positive ints, "
+                             f"got {latent!r}")
+        object.__setattr__(self, "codec_latent_channels", tuple(latent))  # JSON gives a list
         positive = ("num_views", "height", "width", "num_target_views", "cnn_channels", "attention_heads",
                     "neighbours", "depth_candidates", "depth_channels", "feature_channels", "refine_channels",
-                    "head_channels")
+                    "head_channels", "codec_channels", "lambda_channels")
         for name in positive:
             if int(getattr(self, name)) < 1:
                 raise InputError(f"ModelConfig.{name} must be >= 1, got {getattr(self, name)}")
@@ -115,7 +128,8 @@ PRESETS: dict[str, ModelConfig] = {
     "dl3dv": ModelConfig(name="dl3dv", num_views=8, height=256, width=448, neighbours=2),
     "tiny": ModelConfig(name="tiny", num_views=2, height=32, width=48, num_target_views=2, cnn_channels=16,
                         attention_layers=1, attention_heads=2, depth_candidates=8, depth_channels=16,
-                        feature_channels=8, refine_channels=16, head_channels=16, sh_degree=1),
+                        feature_channels=8, refine_channels=16, head_channels=16, sh_degree=1, codec_channels=16,
+                        codec_latent_channels=(4, 8), lambda_channels=16),
 }
 """Named presets; see the module docstring."""
 

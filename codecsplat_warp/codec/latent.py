@@ -1,0 +1,442 @@
+"""The learned feature codec (paper Eq. 5-6): a lambda-conditioned hierarchical VAE on F_c.
+
+Structure (QARV / lossy-vae style, all views of a scene as one batch, each view coded independently):
+
+* **Analysis** (bottom-up): F_c [V,C_F,h,w] (zero-padded to multiples of ``2**(L+1)``) -> features at
+  strides 4, 8, ..., ``2**(L+1)`` of the feature grid (image strides 8, 16, ...), one per latent level.
+* **Top-down** (the entropy model and the first half of the synthesis): from a learned constant at the
+  coarsest stride, each :class:`LatentBlock` predicts the prior (mean, log-scale) of its latent from what
+  the decoder already has, the posterior mean ``z`` from that and the bottom-up feature, quantises ``z``
+  (see below) and merges the result back; a x2 sub-pixel upsampling leads to the next finer level.
+* **Synthesis**: two x2 upsamplings from the finest latent stride back to the feature grid -> F^_c.
+* **Rate control**: lambda in [:data:`LAMBDA_MIN`, :data:`LAMBDA_MAX`] is embedded (sinusoids of the
+  normalised log lambda -> MLP) and every residual block applies a FiLM scale/shift of that embedding.
+  Each latent level is also quantised on a lambda-dependent per-channel grid (gain units, as in Cui et al.
+  2021): the latent, its prior mean and scale are multiplied by ``g = sqrt(lam / LAMBDA_MIN) *
+  exp(Linear(e_lambda))`` before quantisation and divided after. The square root is the MSE-optimal step
+  of high-rate theory, so bytes grow and distortion falls with lambda from the first step; the learned
+  factor (zero at initialisation) refines it.
+
+Quantisation has three forms, all driven through the same top-down pass:
+
+All of the following happens on the gained grid (``z``, ``mu`` there mean ``g z``, ``g mu``):
+
+* training (:class:`NoisyQuantizer`): the rate (Eq. 6) is evaluated at ``z + U(-0.5, 0.5)``, while the
+  decoder path receives ``round(z - mu) + mu`` with a straight-through gradient (the "mixed" scheme of
+  Minnen & Singh 2020, which keeps the decoder's training input equal to its test input);
+* coding (:class:`RoundingQuantizer`): residual symbols ``s = round(z - m)`` with the prior quantised as
+  in :mod:`.entropy` (mean ``m`` on a grid, scale to a table index), ``z^ = s + m``, rate from that
+  discrete model (so the estimate is the ideal code length of what is coded);
+* decoding (:class:`DecodingQuantizer`): the same discrete model, symbols read from the range decoders.
+
+Bit-exact coding across devices: when coding, the lambda embedding and the top-down pass run in float64
+(a float64 copy of those weights, autocast off; they work on the small latent grids, so this is cheap),
+and the prior parameters are quantised as described in :mod:`.entropy`. The encoder runs exactly the
+decoder's computation on the symbols it chose, so both sides derive the same prior from the same
+integers. A CPU and a GPU (or two thread counts) still differ in the last bits of a float64 result
+(summation order; ~1e-14 relative after the few layers of the prior path). Residual risk: a symbol's
+model differs only if such a difference moves a log-scale across a table boundary (spacing 0.12) or a
+mean across a grid midpoint (spacing 1/64), i.e. if the exact value lies within ~1e-13 of one: about
+1e-11 per symbol, 1e-6 to 1e-5 per scene of 1e5 to 5e5 symbols. It would garble the rest of that view's
+stream (the CRCs check bytes, not symbols). In float32 the same risk would be ~1e-5 per symbol, i.e.
+almost every scene, hence the float64 path. The analysis and the synthesis have no influence on the
+symbols' models and run in the model's dtype (bf16 autocast on CUDA is fine).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from ..errors import InputError
+from ..model.config import ModelConfig
+from ..model.layers import conv3x3
+from . import entropy
+
+LAMBDA_MIN = 16.0
+"""Smallest rate-distortion trade-off lambda the codec is trained for (lowest rate)."""
+
+LAMBDA_MAX = 1024.0
+"""Largest lambda (highest rate); the stage-2 loss weighs distortion by lambda / LAMBDA_MAX."""
+
+Timer = Callable[[str], contextlib.AbstractContextManager]
+"""``timer(phase)`` returns a context manager timing that phase (benchmarks); the default times nothing."""
+
+
+def no_timer(_phase: str) -> contextlib.AbstractContextManager:
+    """The default :data:`Timer`: measures nothing."""
+    return contextlib.nullcontext()
+
+
+def check_lambda(lam: float) -> float:
+    """``lam`` as a float; InputError unless it is finite and in [LAMBDA_MIN, LAMBDA_MAX]."""
+    value = float(lam)
+    if not math.isfinite(value) or not LAMBDA_MIN <= value <= LAMBDA_MAX:
+        raise InputError(f"lambda must be in [{LAMBDA_MIN:g}, {LAMBDA_MAX:g}], got {lam!r}")
+    return value
+
+
+def num_levels(config: ModelConfig) -> int:
+    """Number of latent levels L."""
+    return len(config.codec_latent_channels)
+
+
+def padding_multiple(config: ModelConfig) -> int:
+    """The feature grid is zero-padded to multiples of this (the coarsest latent stride, ``2**(L+1)``)."""
+    return 2 ** (num_levels(config) + 1)
+
+
+def latent_shapes(config: ModelConfig, height: int, width: int) -> list[tuple[int, int, int]]:
+    """(channels, rows, columns) of every latent level, coarsest first, for a feature grid of height x width."""
+    m = padding_multiple(config)
+    rows, cols = -(-height // m) * m, -(-width // m) * m
+    L = num_levels(config)
+    return [(c, rows // 2 ** (L + 1 - l), cols // 2 ** (L + 1 - l)) for l, c in enumerate(config.codec_latent_channels)]
+
+
+LAMBDA_FREQUENCIES = 4
+"""Sinusoids of the normalised log lambda t in [0, 1]: frequencies pi * 2**k, k < 4 (smooth in lambda)."""
+
+
+class LambdaEmbedding(nn.Module):
+    """e_lambda [E]: ``t = log(lam / LAMBDA_MIN) / log(LAMBDA_MAX / LAMBDA_MIN)``, its sines and cosines
+    (:data:`LAMBDA_FREQUENCIES`) and ``t`` itself -> 2-layer MLP."""
+
+    def __init__(self, dim: int):
+        super().__init__()
+        frequencies = math.pi * 2.0 ** torch.arange(LAMBDA_FREQUENCIES, dtype=torch.float32)
+        self.register_buffer("frequencies", frequencies, persistent=False)
+        self.mlp = nn.Sequential(nn.Linear(2 * LAMBDA_FREQUENCIES + 1, dim), nn.GELU(), nn.Linear(dim, dim))
+
+    def forward(self, lam: float) -> torch.Tensor:
+        weight = self.mlp[0].weight
+        t = math.log(lam / LAMBDA_MIN) / math.log(LAMBDA_MAX / LAMBDA_MIN)
+        t = torch.tensor([t], dtype=weight.dtype, device=weight.device)
+        angles = t * self.frequencies.to(weight.dtype)
+        return self.mlp(torch.cat([t, angles.sin(), angles.cos()]))
+
+
+class FiLMBlock(nn.Module):
+    """Residual block ``x + conv(gelu(FiLM_e(conv(gelu(x)))))``, FiLM_e a lambda-dependent scale and shift.
+    Shape-preserving."""
+
+    def __init__(self, channels: int, embedding: int):
+        super().__init__()
+        self.conv1 = conv3x3(channels, channels)
+        self.conv2 = conv3x3(channels, channels)
+        self.film = nn.Linear(embedding, 2 * channels)
+
+    def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
+        scale, shift = self.film(emb).to(x.dtype).chunk(2)
+        h = self.conv1(F.gelu(x))
+        h = h * (1.0 + scale[:, None, None]) + shift[:, None, None]
+        return x + self.conv2(F.gelu(h))
+
+
+class Upsample2x(nn.Module):
+    """x2 sub-pixel upsampling: conv3x3 to 4c channels, then pixel shuffle."""
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.conv = conv3x3(channels, 4 * channels)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.pixel_shuffle(self.conv(x), 2)
+
+
+class Analysis(nn.Module):
+    """Bottom-up: padded F_c [V,C_F,h,w] -> features [V,c,h/s,w/s] for s = 2**(L+1), ..., 8, 4 (coarsest first)."""
+
+    def __init__(self, config: ModelConfig):
+        super().__init__()
+        c, e = config.codec_channels, config.lambda_channels
+        self.stem = nn.Conv2d(config.feature_channels, c, 3, stride=2, padding=1)
+        self.stem_block = FiLMBlock(c, e)
+        self.downs = nn.ModuleList(conv3x3(c, c, stride=2) for _ in range(num_levels(config)))
+        self.blocks = nn.ModuleList(FiLMBlock(c, e) for _ in range(num_levels(config)))
+
+    def forward(self, feature: torch.Tensor, emb: torch.Tensor) -> list[torch.Tensor]:
+        x = self.stem_block(self.stem(feature), emb)
+        features = []
+        for down, block in zip(self.downs, self.blocks):
+            x = block(down(x), emb)
+            features.append(x)
+        return features[::-1]
+
+
+Quantizer = Callable[[int, "torch.Tensor | None", torch.Tensor, torch.Tensor], torch.Tensor]
+"""``quantize(level, z, mean, log_scale) -> z_hat`` on the quantisation grid; ``z`` (posterior mean) is None
+on the decoder."""
+
+
+def base_log_gain(lam: float) -> float:
+    """log of the fixed part of the quantisation gain, ``0.5 * log(lam / LAMBDA_MIN)`` (1 at LAMBDA_MIN)."""
+    return 0.5 * math.log(lam / LAMBDA_MIN)
+
+
+class LatentBlock(nn.Module):
+    """One latent level: prior from the top-down feature, posterior from it and the bottom-up feature,
+    quantisation on the lambda-dependent grid, merge back into the top-down feature."""
+
+    def __init__(self, channels: int, latent_channels: int, embedding: int):
+        super().__init__()
+        self.prior = nn.Sequential(nn.GELU(), conv3x3(channels, 2 * latent_channels))
+        self.posterior = nn.Sequential(conv3x3(2 * channels, channels), nn.GELU(), conv3x3(channels, latent_channels))
+        self.gain = nn.Linear(embedding, latent_channels)
+        nn.init.zeros_(self.gain.weight)
+        nn.init.zeros_(self.gain.bias)
+        self.merge = conv3x3(channels + latent_channels, channels)
+        self.post = FiLMBlock(channels, embedding)
+
+    def forward(self, x: torch.Tensor, emb: torch.Tensor, lam: float, encoded: torch.Tensor | None, level: int,
+                quantize: Quantizer) -> torch.Tensor:
+        mean, log_scale = self.prior(x).chunk(2, dim=1)
+        log_gain = (base_log_gain(lam) + _at_least_float32(self.gain(emb)))[:, None, None]
+        gain = log_gain.exp()
+        z = self.posterior(torch.cat([x, encoded.to(x.dtype)], dim=1)) * gain if encoded is not None else None
+        z_hat = quantize(level, z, mean * gain, _bounded_log_scale(log_scale + log_gain)) / gain
+        x = x + self.merge(torch.cat([x, z_hat.to(x.dtype)], dim=1))
+        return self.post(x, emb)
+
+
+def _bounded_log_scale(log_scale: torch.Tensor) -> torch.Tensor:
+    """Clamp to the scale table's range with a straight-through gradient (never stuck at a bound)."""
+    lo, hi = entropy.log_scale_bounds()
+    return log_scale + (log_scale.clamp(lo, hi) - log_scale).detach()
+
+
+class TopDown(nn.Module):
+    """Top-down pass: learned constant at the coarsest stride -> latent blocks (x2 upsampling between)
+    -> top-down feature [V,c,h/4,w/4] at the finest latent stride."""
+
+    def __init__(self, config: ModelConfig):
+        super().__init__()
+        c, e = config.codec_channels, config.lambda_channels
+        self.start = nn.Parameter(torch.zeros(1, c, 1, 1))
+        self.blocks = nn.ModuleList(LatentBlock(c, cz, e) for cz in config.codec_latent_channels)
+        self.ups = nn.ModuleList(Upsample2x(c) for _ in range(num_levels(config) - 1))
+
+    def forward(self, emb: torch.Tensor, lam: float, views: int, shapes: list[tuple[int, int, int]],
+                encoded: list[torch.Tensor] | None, quantize: Quantizer) -> torch.Tensor:
+        x = self.start.expand(views, -1, shapes[0][1], shapes[0][2])
+        for level, block in enumerate(self.blocks):
+            if level:
+                x = self.ups[level - 1](x)
+            x = block(x, emb, lam, encoded[level] if encoded is not None else None, level, quantize)
+        return x
+
+
+class Synthesis(nn.Module):
+    """Top-down feature [V,c,h/4,w/4] -> F^_c [V,C_F,h,w] (padded grid): two x2 upsamplings."""
+
+    def __init__(self, config: ModelConfig):
+        super().__init__()
+        c, e = config.codec_channels, config.lambda_channels
+        self.blocks = nn.ModuleList(FiLMBlock(c, e) for _ in range(2))
+        self.ups = nn.ModuleList(Upsample2x(c) for _ in range(2))
+        self.out = conv3x3(c, config.feature_channels)
+
+    def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
+        for block, up in zip(self.blocks, self.ups):
+            x = up(block(x, emb))
+        return self.out(F.gelu(x))
+
+
+# --------------------------------------------------------------------------------------------------
+# Quantizers
+def _at_least_float32(t: torch.Tensor) -> torch.Tensor:
+    """``t`` in float32, or float64 if it already is (half-precision autocast outputs are widened)."""
+    return t.to(torch.promote_types(t.dtype, torch.float32))
+
+
+class NoisyQuantizer:
+    """Training: rate at ``z + U(-0.5, 0.5)``, decoder input ``round(z - mu) + mu`` (straight-through).
+
+    Attributes:
+        bits: per level, the estimated bits of each view [V] (float32, differentiable).
+    """
+
+    def __init__(self):
+        self.bits: list[torch.Tensor] = []
+
+    def __call__(self, level: int, z, mean, log_scale):
+        residual = z.float() - mean.float()
+        rounded = residual + (torch.round(residual) - residual).detach()
+        noisy = residual + torch.rand_like(residual) - 0.5
+        self.bits.append(entropy.gaussian_bits(noisy, log_scale.float().exp()).sum(dim=(1, 2, 3)))
+        return mean.float() + rounded
+
+
+class RoundingQuantizer:
+    """Coding: residual symbols under the quantised prior (see :mod:`.entropy`); records what is coded.
+
+    Attributes:
+        bits: per level, ideal code length of each view [V] under the discrete model.
+        symbols, indices: per level, residual symbols and scale indices (int64, shape of the latent).
+    """
+
+    def __init__(self):
+        self.bits: list[torch.Tensor] = []
+        self.symbols: list[torch.Tensor] = []
+        self.indices: list[torch.Tensor] = []
+
+    def __call__(self, level: int, z, mean, log_scale):
+        z, mean, log_scale = (_at_least_float32(t) for t in (z, mean, log_scale))
+        mean = entropy.quantize_mean(mean)
+        index = entropy.scale_index(log_scale)
+        residual = torch.round(z - mean).detach()
+        if not bool(torch.isfinite(residual).all()) or float(residual.abs().max()) > 2.0**entropy.ESCAPE_MAX_BITS:
+            raise InputError(f"latent level {level} holds non-finite or huge values (|residual| > "
+                             f"2**{entropy.ESCAPE_MAX_BITS}): the feature to code is not sane")
+        scales = entropy.scale_table().to(device=index.device, dtype=residual.dtype)[index]
+        self.bits.append(entropy.gaussian_bits(residual, scales).sum(dim=(1, 2, 3)))
+        self.symbols.append(residual.to(torch.int64))
+        self.indices.append(index)
+        return residual + mean
+
+
+class DecodingQuantizer:
+    """Decoding: the discrete model of :class:`RoundingQuantizer`, symbols read from one range decoder per view.
+
+    Attributes:
+        symbols: per level, the decoded residual symbols (int64, shape of the latent).
+    """
+
+    def __init__(self, decoders: list, timer: Timer):
+        self.decoders = decoders
+        self.timer = timer
+        self.symbols: list[torch.Tensor] = []
+
+    def __call__(self, level: int, z, mean, log_scale):
+        mean = entropy.quantize_mean(mean)
+        with self.timer("entropy"):
+            index = entropy.scale_index(log_scale).cpu().numpy()
+            decoded = [entropy.decode_symbols(d, i.reshape(-1)).reshape(i.shape) for d, i in zip(self.decoders, index)]
+            symbols = torch.from_numpy(np.stack(decoded)).to(mean.device)
+        self.symbols.append(symbols)
+        return symbols.to(mean.dtype) + mean
+
+
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class CodecOutput:
+    """Result of :meth:`LatentCodec.forward`.
+
+    Attributes:
+        feature: F^_c [V,C_F,h,w], the reconstructed feature.
+        bits: [V] estimated bits of each view (Eq. 6; noisy in training, the discrete model's otherwise).
+    """
+
+    feature: torch.Tensor
+    bits: torch.Tensor
+
+
+@dataclass
+class CompressedLatents:
+    """Result of :meth:`LatentCodec.compress`.
+
+    Attributes:
+        streams: one range-coded byte stream per view.
+        symbols: per level (coarsest first), the coded residual symbols int64 [V,C_l,h_l,w_l] (CPU).
+        bits: [V] ideal code length of each view under the discrete model (float64, CPU).
+    """
+
+    streams: list[bytes]
+    symbols: list[torch.Tensor]
+    bits: torch.Tensor
+
+
+class LatentCodec(nn.Module):
+    """Analysis -> hierarchical latents -> synthesis on the feature grid, conditioned on lambda.
+
+    See the module docstring. Works on any feature grid (zero-padded internally to
+    :func:`padding_multiple`, cropped back afterwards).
+    """
+
+    def __init__(self, config: ModelConfig):
+        super().__init__()
+        self.config = config
+        self.embedding = LambdaEmbedding(config.lambda_channels)
+        self.analysis = Analysis(config)
+        self.top_down = TopDown(config)
+        self.synthesis = Synthesis(config)
+        self._exact: tuple | None = None  # (weights key, float64 copy), see _float64_prior_path
+
+    def forward(self, feature: torch.Tensor, lam: float) -> CodecOutput:
+        """Differentiable pass: F_c [V,C_F,h,w] -> :class:`CodecOutput`. In training mode the quantisation
+        is noisy (:class:`NoisyQuantizer`), in eval mode it is the coder's (:class:`RoundingQuantizer`)."""
+        h, w = feature.shape[-2:]
+        shapes = latent_shapes(self.config, h, w)
+        lam = check_lambda(lam)
+        emb = self.embedding(lam)
+        encoded = self.analysis(self._pad(feature), emb)
+        quantizer = NoisyQuantizer() if self.training else RoundingQuantizer()
+        x = self.top_down(emb, lam, feature.shape[0], shapes, encoded, quantizer)
+        return CodecOutput(self.synthesis(x, emb)[..., :h, :w], torch.stack(quantizer.bits).sum(0))
+
+    @torch.no_grad()
+    def compress(self, feature: torch.Tensor, lam: float, timer: Timer = no_timer) -> CompressedLatents:
+        """Encoder: F_c [V,C_F,h,w] -> one range-coded stream per view (:class:`CompressedLatents`).
+
+        The analysis runs in the feature's dtype, the prior path in float64 (see the module docstring).
+        """
+        lam = check_lambda(lam)
+        h, w = feature.shape[-2:]
+        shapes = latent_shapes(self.config, h, w)
+        encoded = self.analysis(self._pad(feature), self.embedding(lam))
+        exact = self._float64_prior_path()
+        quantizer = RoundingQuantizer()
+        with torch.autocast(feature.device.type, enabled=False):
+            encoded = [e.double() for e in encoded]
+            exact.top_down(exact.embedding(lam), lam, feature.shape[0], shapes, encoded, quantizer)
+        with timer("entropy"):
+            symbols = [s.cpu() for s in quantizer.symbols]
+            indices = [i.cpu() for i in quantizer.indices]
+            streams = []
+            for view in range(feature.shape[0]):
+                encoder = entropy.new_encoder()
+                for s, i in zip(symbols, indices):
+                    entropy.encode_symbols(encoder, s[view].reshape(-1).numpy(), i[view].reshape(-1).numpy())
+                streams.append(entropy.encoder_bytes(encoder))
+        return CompressedLatents(streams, symbols, torch.stack(quantizer.bits).sum(0).cpu())
+
+    @torch.no_grad()
+    def decompress(self, streams: list[bytes], height: int, width: int, lam: float,
+                   timer: Timer = no_timer) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Decoder: one stream per view -> (F^_c [V,C_F,height,width] in the model's dtype, on its device;
+        the decoded symbols per level, int64 [V,C_l,h_l,w_l]). ``height`` x ``width`` is the feature grid."""
+        lam = check_lambda(lam)
+        shapes = latent_shapes(self.config, height, width)
+        exact = self._float64_prior_path()
+        with timer("entropy"):
+            decoders = [entropy.new_decoder(s) for s in streams]
+        quantizer = DecodingQuantizer(decoders, timer)
+        device = self.top_down.start.device
+        with torch.autocast(device.type, enabled=False):
+            x = exact.top_down(exact.embedding(lam), lam, len(streams), shapes, None, quantizer)
+        x = x.to(self.top_down.start.dtype)
+        feature = self.synthesis(x, self.embedding(lam))[..., :height, :width]
+        return feature, quantizer.symbols
+
+    def _pad(self, feature: torch.Tensor) -> torch.Tensor:
+        m = padding_multiple(self.config)
+        h, w = feature.shape[-2:]
+        return F.pad(feature, (0, -w % m, 0, -h % m))
+
+    def _float64_prior_path(self) -> nn.ModuleDict:
+        """A float64 copy of the lambda embedding and the top-down pass (the modules that define the priors),
+        made again only when a weight changed (new storage or an in-place update)."""
+        sources = [*self.embedding.parameters(), *self.top_down.parameters()]
+        key = tuple((p.data_ptr(), p._version, p.device) for p in sources)
+        if self._exact is None or self._exact[0] != key:
+            modules = nn.ModuleDict({"embedding": self.embedding, "top_down": self.top_down})
+            self._exact = (key, copy.deepcopy(modules).double().requires_grad_(False))
+        return self._exact[1]

@@ -1,0 +1,136 @@
+"""``codecsplat demo``: the shipped model on a built-in procedural scene, end to end, offline.
+
+A procedural room (:func:`codecsplat_warp.data.procedural_scene`, nothing to download) is drawn at the
+model's image size; its context views are encoded at a few lambdas, each bitstream is decoded and its
+target views rendered and scored against the exact ground-truth images. Written to the output folder:
+
+* ``scene-lambda<L>.csplat``: the scene bitstreams;
+* ``scene.ply``: the Gaussians decoded from the largest lambda, pruned of invisible ones (3DGS PLY);
+* ``renders/target<i>-lambda<L>.png`` and ``comparison.png`` (ground truth | one column per lambda);
+* ``rate_distortion.png`` and ``summary.json`` (bytes per part, metrics, seconds).
+"""
+
+from __future__ import annotations
+
+import pathlib
+import statistics
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from .bench.common import write_json
+from .codec import bytes_report, check_lambda
+from .data.procedural import ProceduralConfig, procedural_scene
+from .errors import InputError
+from .data import split_context_targets
+from .evaluate import Sample, format_bytes, plot_rate_distortion, pyplot, save_figure, timed
+from .export.files import atomic_output, write_bytes
+from .export.ply import prune_transparent, write_ply
+from .export.video import to_uint8_frames
+from .metrics.image import ImageMetrics
+
+DEMO_SEED = 3
+DEMO_LAMBDAS = (16.0, 128.0, 1024.0)
+DEMO_TARGET_VIEWS = 2
+
+
+@dataclass
+class DemoConfig:
+    """Options of ``codecsplat demo``."""
+
+    out: str = "codecsplat-demo"
+    lambdas: tuple[float, ...] = DEMO_LAMBDAS
+    seed: int = DEMO_SEED
+    target_views: int = DEMO_TARGET_VIEWS
+    lpips_weights: str | None = None
+    progress: bool = True
+
+
+def demo_sample(model_config, seed: int, target_views: int) -> Sample:
+    """A procedural room at the model's size: ``num_views`` context views along an orbit, targets between."""
+    views = model_config.num_views
+    scene = procedural_scene(seed, ProceduralConfig(width=model_config.width, height=model_config.height,
+                                                    num_views=views + target_views, layout="room", trajectory="orbit"))
+    context, target = split_context_targets(scene.cameras, 0, views, target_views)
+    images = scene.images.float() / 255.0
+    cameras = scene.cameras.to(dtype=torch.float32)
+    return Sample(scene.key, context, target, images[context], cameras.select(context), images[target],
+                  cameras.select(target))
+
+
+def run_demo(model, config: DemoConfig, device: torch.device) -> dict:
+    """Run the demo (see the module docstring) with ``model`` on ``device``; returns the summary dict."""
+    lambdas = sorted(check_lambda(lam) for lam in config.lambdas)
+    if not lambdas:
+        raise InputError("give at least one lambda")
+    if config.target_views < 1:
+        raise InputError(f"the demo needs at least 1 target view, got {config.target_views}")
+    out = pathlib.Path(config.out)
+    metrics = ImageMetrics(config.lpips_weights, device)
+    start = time.perf_counter()
+    quiet = None if config.progress else True  # None: a bar only when stderr is a terminal
+    with tqdm(total=2 + 2 * len(lambdas), desc="demo", unit="step", disable=quiet) as progress:
+        sample = demo_sample(model.config, config.seed, config.target_views).to(device)
+        progress.update(1)
+        rows, renders, decoded = [], [], None
+        for lam in lambdas:
+            progress.set_postfix_str(f"encode λ={lam:g}")
+            data, encode_s = timed(lambda: model.encode(sample.context_images, sample.context_cameras, lam), device)
+            write_bytes(out / f"scene-lambda{lam:g}.csplat", data)
+            progress.update(1)
+            progress.set_postfix_str(f"decode λ={lam:g}")
+            decoded, decode_s = timed(lambda: model.decode_scene(data), device)
+            with torch.no_grad():
+                rgb = model.render(decoded.gaussians, sample.target_cameras)["rgb"]
+            scores = {k: statistics.fmean(v) for k, v in metrics(rgb, sample.target_images).items()}
+            rows.append({"method": "CodecSplat", "setting": f"λ={lam:g}", "lam": lam, "bytes": len(data),
+                         "parts": bytes_report(data), **scores, "encode_s": encode_s, "decode_s": decode_s})
+            renders.append(to_uint8_frames(rgb))
+            progress.update(1)
+        progress.set_postfix_str("PLY and plots")
+        kept, pruned = prune_transparent(decoded.gaussians)  # the largest lambda's scene
+        ply_bytes = write_ply(out / "scene.ply", kept)
+        files = _write_images(out, sample, rows, renders)
+        plot_rate_distortion(rows, out / "rate_distortion.png")
+        progress.update(1)
+    summary = {
+        "config": asdict(config), "device": str(device), "scene": sample.scene, "context_views": sample.context,
+        "target_views": sample.target, "image_size": [sample.context_cameras.height, sample.context_cameras.width],
+        "lpips": metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1", "rows": rows,
+        "ply": {"path": str(out / "scene.ply"), "gaussians": len(kept), "pruned": pruned, "bytes": ply_bytes,
+                "lambda": lambdas[-1]},
+        "files": [str(out / f"scene-lambda{lam:g}.csplat") for lam in lambdas] + files
+        + [str(out / "scene.ply"), str(out / "rate_distortion.png"), str(out / "summary.json")],
+        "seconds": time.perf_counter() - start,
+    }
+    write_json(out / "summary.json", summary)
+    return summary
+
+
+def _write_images(out: pathlib.Path, sample: Sample, rows: list[dict], renders: list[np.ndarray]) -> list[str]:
+    """Per-target PNG renders and ``comparison.png`` (rows: targets; columns: ground truth, each lambda)."""
+    import imageio.v3 as iio
+
+    paths = []
+    for row, frames in zip(rows, renders):
+        for i, frame in enumerate(frames):
+            path = out / "renders" / f"target{i}-lambda{row['lam']:g}.png"
+            with atomic_output(path) as tmp:
+                iio.imwrite(tmp, frame, extension=".png")
+            paths.append(str(path))
+    truth = to_uint8_frames(sample.target_images)
+    titles = ["ground truth"] + [f"λ={r['lam']:g}: {format_bytes(r['bytes'])}, {r['psnr']:.2f} dB" for r in rows]
+    columns = [truth] + renders
+    fig, axes = pyplot().subplots(len(truth), len(columns), squeeze=False,
+                                  figsize=(2.6 * len(columns), 2.6 * len(truth) * truth.shape[1] / truth.shape[2] + 0.4))
+    for i, row_axes in enumerate(axes):
+        for j, ax in enumerate(row_axes):
+            ax.imshow(columns[j][i])
+            ax.set_axis_off()
+            if i == 0:
+                ax.set_title(titles[j], fontsize=8)
+    save_figure(fig, out / "comparison.png")
+    return paths + [str(out / "comparison.png")]

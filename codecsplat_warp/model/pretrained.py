@@ -1,0 +1,115 @@
+"""Pretrained CodecSplat files and model identifiers.
+
+A pretrained file is ONE safetensors file: every weight in float32, and in its metadata the format name,
+the :class:`~codecsplat_warp.model.config.ModelConfig` as JSON, the SHA-256 of the weights (checked on
+load) and the model identifier. The re10k/dl3dv presets hold about 4.1 M parameters, i.e. 15.7 MiB, within
+the 16 MiB a file may have. The shipped default lives at :data:`DEFAULT_CHECKPOINT`.
+
+The *model identifier* (:func:`model_id`, 16 hex digits) names the decoder a bitstream needs: a hash of the
+config, the float32 weights and the entropy coder's probability tables. Every bitstream carries it in its
+header, and decoding with another model raises BitstreamError naming both.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pathlib
+
+import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save_file
+
+from ..codec.entropy import entropy_model_digest
+from ..device import resolve_device
+from ..errors import DataError, InputError
+from .config import ModelConfig
+
+DEFAULT_CHECKPOINT = pathlib.Path(__file__).resolve().parents[1] / "assets" / "codecsplat-default.safetensors"
+"""The checkpoint shipped with the package (``load_pretrained()`` with no path)."""
+
+FORMAT = "codecsplat-pretrained-v1"
+
+
+def weights_digest(model: torch.nn.Module) -> str:
+    """SHA-256 hex of a model's config and state dict (names, shapes, float32 little-endian values).
+
+    Cached on the model until a tensor changes (new storage or an in-place update such as an optimizer step).
+    """
+    state = model.state_dict()
+    key = tuple((name, t.data_ptr(), t._version, str(t.device), t.dtype) for name, t in state.items())
+    cached = getattr(model, "_weights_digest_cache", None)
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    sha = hashlib.sha256(json.dumps(model.config.to_dict(), sort_keys=True).encode())
+    for name in sorted(state):
+        tensor = state[name].detach().to("cpu", torch.float32).contiguous()
+        sha.update(f"{name}:{tuple(tensor.shape)}".encode())
+        sha.update(tensor.numpy().astype("<f4").tobytes())
+    digest = sha.hexdigest()
+    model._weights_digest_cache = (key, digest)
+    return digest
+
+
+def model_id(model: torch.nn.Module) -> str:
+    """16 hex digits naming the decoder: hash of :func:`weights_digest` and the entropy coder's tables."""
+    return hashlib.sha256((weights_digest(model) + entropy_model_digest()).encode()).hexdigest()[:16]
+
+
+def save_pretrained(model: torch.nn.Module, path) -> pathlib.Path:
+    """Write ``model`` (a :class:`CodecSplat` with its codec) as one safetensors file, atomically.
+
+    Returns:
+        the path written.
+    Raises:
+        InputError: the model has no codec (a stage-1 model cannot encode or decode bitstreams).
+    """
+    if getattr(model, "codec", None) is None:
+        raise InputError("only a CodecSplat with its codec (codec=True, stage 2) can be saved as a pretrained model")
+    path = pathlib.Path(path)
+    tensors = {name: t.detach().to("cpu", torch.float32).contiguous() for name, t in model.state_dict().items()}
+    metadata = {"format": FORMAT, "config": json.dumps(model.config.to_dict()), "weights_sha256": weights_digest(model),
+                "model_id": model_id(model)}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    save_file(tensors, str(tmp), metadata=metadata)
+    os.replace(tmp, path)
+    return path
+
+
+def load_pretrained(path=None, device=None):
+    """A :class:`CodecSplat` (with codec, eval mode) from a file written by :func:`save_pretrained`.
+
+    Args:
+        path: the safetensors file; None for the shipped :data:`DEFAULT_CHECKPOINT`.
+        device: cpu, cuda, cuda:N, auto or None (auto: CUDA when available).
+    Raises:
+        DataError: the file is missing, unreadable, of another format, or its weights do not match their hash.
+    """
+    from .codecsplat import CodecSplat  # the network module imports this one (model_id)
+
+    path = pathlib.Path(path) if path is not None else DEFAULT_CHECKPOINT
+    if not path.is_file():
+        hint = (" (the shipped default model is not part of this installation yet: train one with train.stage2 "
+                "and write it with save_pretrained, or pass a path)") if path == DEFAULT_CHECKPOINT else ""
+        raise DataError(f"pretrained model file {path} not found{hint}")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            metadata = f.metadata() or {}
+            tensors = {name: f.get_tensor(name) for name in f.keys()}
+    except (SafetensorError, OSError) as exc:
+        raise DataError(f"{path} is not a readable safetensors file: {exc}") from None
+    if metadata.get("format") != FORMAT:
+        raise DataError(f"{path}: not a CodecSplat pretrained file (format {metadata.get('format')!r}, "
+                        f"expected {FORMAT})")
+    try:
+        config = ModelConfig.from_dict(json.loads(metadata["config"]))
+        model = CodecSplat(config, codec=True)
+        model.load_state_dict(tensors)
+    except (KeyError, ValueError, RuntimeError) as exc:
+        raise DataError(f"{path}: config and weights do not fit together: {exc}") from None
+    model = model.to(resolve_device(device)).eval()
+    if weights_digest(model) != metadata.get("weights_sha256"):
+        raise DataError(f"{path}: the weights do not match their SHA-256 (corrupt file)")
+    return model

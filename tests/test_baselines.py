@@ -1,0 +1,129 @@
+"""Baseline compressors: decodable, within their quantisation error, and corrupt input raises BitstreamError."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from codecsplat_warp.baselines import FeatureDeflate, PlyDeflate, PngCompression, kmeans, morton_codes
+from codecsplat_warp.baselines.container import pack, unpack
+from codecsplat_warp.cameras import Cameras, intrinsics_matrix
+from codecsplat_warp.errors import BitstreamError
+from test_ply import random_gaussians
+
+
+def _nearest_distance(points: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    return torch.cdist(points.double(), reference.double()).min(dim=1).values
+
+
+def test_ply_deflate_round_trip_is_within_half_a_quantisation_step():
+    gaussians = random_gaussians(300, degree=2)
+    codec = PlyDeflate(position_bits=16, attribute_bits=8)
+    data = codec.encode(gaussians)
+    back = codec.decode(data)
+    assert len(back) == 300 and back.sh_degree == 2
+    raw_ply_bytes = 300 * (3 + 3 + 27 + 1 + 3 + 4) * 4
+    assert len(data) < raw_ply_bytes / 2
+    span = gaussians.means.max(0).values - gaussians.means.min(0).values
+    assert bool(((back.means - gaussians.means).abs() <= span / 65535 / 2 + 1e-5).all())
+    sh_span = gaussians.sh.max() - gaussians.sh.min()
+    assert float((back.sh - gaussians.sh).abs().max()) <= float(sh_span) / 255 / 2 + 1e-6
+    log_scale_span = float(gaussians.scales.log().max() - gaussians.scales.log().min())
+    assert float((back.scales.log() - gaussians.scales.log()).abs().max()) <= log_scale_span / 255 / 2 + 1e-5
+
+
+@pytest.mark.parametrize("n,degree", [(50, 1), (64, 0), (7, 2)])
+def test_png_round_trip_keeps_every_gaussian_and_drops_the_padding(n, degree):
+    gaussians = random_gaussians(n, degree, seed=n)
+    codec = PngCompression(sh_clusters=4096, kmeans_iterations=3)
+    back = codec.decode(codec.encode(gaussians))
+    assert len(back) == n and back.sh_degree == degree
+    # sorted order: every decoded centre lies within one 16-bit step (in log space) of an original one
+    assert float(_nearest_distance(back.means, gaussians.means).max()) < 1e-3
+    assert float(_nearest_distance(gaussians.means, back.means).max()) < 1e-3
+    match = torch.cdist(back.means.double(), gaussians.means.double()).argmin(dim=1)
+    assert float((back.opacities - gaussians.opacities[match]).abs().max()) < 0.02
+    if degree:  # as many clusters as Gaussians: only the 6-bit centroid quantisation remains
+        rest = gaussians.sh[match, 1:]
+        step = float(rest.max() - rest.min()) / 63
+        assert float((back.sh[:, 1:] - rest).abs().max()) <= step / 2 + 1e-5
+
+
+def test_png_with_few_sh_clusters_shares_the_higher_sh():
+    gaussians = random_gaussians(200, degree=1)
+    codec = PngCompression(sh_clusters=8, kmeans_iterations=5)
+    back = codec.decode(codec.encode(gaussians))
+    assert len(torch.unique(back.sh[:, 1:].reshape(200, -1), dim=0)) <= 8
+
+
+def test_feature_deflate_round_trip_is_float16_exact():
+    g = torch.Generator().manual_seed(0)
+    feature, depth = torch.randn(2, 8, 6, 10, generator=g), torch.rand(2, 12, 20, generator=g) * 10 + 1
+    f = torch.full((2,), 15.0, dtype=torch.float64)
+    c2w = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+    c2w[1, 0, 3] = 0.25
+    cameras = Cameras.from_c2w(intrinsics_matrix(f, f, f * 0 + 10, f * 0 + 6), c2w, torch.full((2,), 0.5),
+                               torch.full((2,), 50.0), 20, 12)
+    scene = FeatureDeflate().decode(FeatureDeflate().encode(feature, depth, cameras))
+    assert torch.equal(scene.feature, feature.half().float()) and torch.equal(scene.depth, depth.half().float())
+    torch.testing.assert_close(scene.cameras.w2c, cameras.w2c.float())
+    torch.testing.assert_close(scene.cameras.K, cameras.K.float())
+    assert (scene.cameras.width, scene.cameras.height) == (20, 12)
+
+
+def _streams():
+    gaussians = random_gaussians(30, degree=1)
+    g = torch.Generator().manual_seed(1)
+    f = torch.full((2,), 15.0)
+    cameras = Cameras.from_c2w(intrinsics_matrix(f, f, f * 0 + 8, f * 0 + 8), torch.eye(4).repeat(2, 1, 1),
+                               torch.full((2,), 0.5), torch.full((2,), 50.0), 16, 16)
+    return [(PlyDeflate(), PlyDeflate().encode(gaussians)), (PngCompression(), PngCompression().encode(gaussians)),
+            (FeatureDeflate(), FeatureDeflate().encode(torch.randn(2, 4, 8, 8, generator=g),
+                                                       torch.rand(2, 16, 16, generator=g) + 1, cameras))]
+
+
+def test_corrupt_streams_raise_bitstream_errors_only():
+    rng = np.random.default_rng(0)
+    for codec, data in _streams():
+        candidates = [b"", data[:3], data[:len(data) // 2], data[:-1], data + b"x", b"XXXX" + data[4:],
+                      bytes(rng.integers(0, 256, 64, dtype=np.uint8))]
+        for _ in range(20):
+            mutated = bytearray(data)
+            mutated[int(rng.integers(4, len(data)))] ^= 1 << int(rng.integers(8))
+            candidates.append(bytes(mutated))
+        for candidate in candidates:
+            try:
+                codec.decode(candidate)
+            except BitstreamError:
+                pass
+
+
+def test_container_round_trip_and_framing_errors():
+    data = pack(b"TEST", {"a": [1, 2]}, [b"xyz", b""])
+    assert unpack(data, b"TEST") == ({"a": [1, 2]}, [b"xyz", b""])
+    with pytest.raises(BitstreamError, match="not a ELSE stream"):
+        unpack(data, b"ELSE")
+    with pytest.raises(BitstreamError, match="truncated"):
+        unpack(data[:-1], b"TEST")
+    with pytest.raises(BitstreamError, match="unexpected bytes"):
+        unpack(data + b"\0", b"TEST")
+
+
+def test_kmeans_converges_to_a_fixed_point_of_lloyds_step_and_caps_k_at_n():
+    g = torch.Generator().manual_seed(2)
+    centres = torch.tensor([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]])
+    points = centres.repeat_interleave(50, 0) + 0.1 * torch.randn(150, 2, generator=g)
+    found, labels = kmeans(points, 3, iterations=20, seed=3)
+    assert torch.equal(labels, torch.cdist(points, found).argmin(dim=1))
+    for k in labels.unique():
+        torch.testing.assert_close(found[k], points[labels == k].mean(0))
+    distinct = points[:4]
+    found, labels = kmeans(distinct, 100, iterations=2)
+    assert found.shape == (4, 2) and torch.equal(found[labels], distinct)
+
+
+def test_morton_order_follows_space():
+    line = torch.stack([torch.linspace(0, 1, 9), torch.zeros(9), torch.zeros(9)], -1)
+    assert torch.equal(torch.argsort(morton_codes(line)), torch.arange(9))
+    assert int(morton_codes(torch.tensor([[0.0, 0, 0], [0, 0, 1], [1, 1, 1]]))[2]) == (1 << 30) - 1

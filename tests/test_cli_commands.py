@@ -1,0 +1,174 @@
+"""``codecsplat`` encode / decode / render / eval / demo end to end (subprocess), on a tiny random model and
+tiny procedural scenes written to disk as codecsplat-scene-v1 folders; user errors exit 1 with one line."""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+import imageio.v3 as iio
+import pytest
+import torch
+
+from codecsplat_warp.cli import BENCHMARKS, EXIT_USER, build_parser, main
+from codecsplat_warp.data import ProceduralConfig, load_scene, procedural_scene
+from codecsplat_warp.export import read_ply
+from codecsplat_warp.export.video import mp4_plugin
+from codecsplat_warp.metrics import WEIGHTS_ENV
+from codecsplat_warp.model import CodecSplat, get_preset
+from codecsplat_warp.model.pretrained import save_pretrained
+
+WIDTH, HEIGHT = 48, 32
+
+
+def write_scene(folder: pathlib.Path, seed: int, views: int = 6) -> pathlib.Path:
+    """A procedural scene as a codecsplat-scene-v1 folder (PNG images + cameras.json)."""
+    scene = procedural_scene(seed, ProceduralConfig(width=WIDTH, height=HEIGHT, num_views=views, texture_size=16))
+    (folder / "images").mkdir(parents=True)
+    frames = []
+    for i in range(views):
+        iio.imwrite(folder / "images" / f"{i:03d}.png", scene.images[i].permute(1, 2, 0).numpy())
+        K, c2w = scene.cameras.K[i].double(), scene.cameras.c2w[i].double()
+        frames.append({"file": f"images/{i:03d}.png", "w": WIDTH, "h": HEIGHT, "fx": float(K[0, 0]), "fy": float(K[1, 1]),
+                       "cx": float(K[0, 2]), "cy": float(K[1, 2]), "c2w": c2w.tolist()})
+    cameras = {"format": "codecsplat-scene-v1", "frames": frames, "near": float(scene.cameras.near.min()),
+               "far": float(scene.cameras.far.max())}
+    (folder / "cameras.json").write_text(json.dumps(cameras))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory) -> pathlib.Path:
+    """A folder with ``tiny.safetensors`` (random tiny model with codec) and ``scenes/{a,b}``."""
+    root = tmp_path_factory.mktemp("cli")
+    torch.manual_seed(0)
+    save_pretrained(CodecSplat(get_preset("tiny"), codec=True), root / "tiny.safetensors")
+    write_scene(root / "scenes" / "a", seed=1)
+    write_scene(root / "scenes" / "b", seed=2)
+    return root
+
+
+def codecsplat(workspace: pathlib.Path, *args: str) -> dict:
+    """Run the console module with --json on the tiny model; the parsed stdout (exit code must be 0).
+
+    LPIPS is left out (no weights in the environment) to keep the runs short; tests/test_metrics_image.py
+    covers it."""
+    command = [sys.executable, "-m", "codecsplat_warp.cli", *args, "--device", "cpu", "--json",
+               "--checkpoint", str(workspace / "tiny.safetensors")]
+    env = {k: v for k, v in os.environ.items() if k != WEIGHTS_ENV}
+    done = subprocess.run(command, capture_output=True, text=True, cwd=workspace, env=env)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
+def test_encode_decode_render_pipeline(workspace):
+    encoded = codecsplat(workspace, "encode", "scenes/a", "--views", "0,5", "--lambda", "64", "-o", "a.csplat")
+    data = (workspace / "a.csplat").read_bytes()
+    assert encoded["views"] == [0, 5] and encoded["bytes"]["total"] == len(data)
+    assert set(encoded["bytes"]) == {"header", "cameras", "view0", "view1", "total"}
+    assert encoded["lambda"] == 64 and encoded["seconds"]["encode"] > 0
+
+    decoded = codecsplat(workspace, "decode", "a.csplat", "-o", "a.ply", "--prune")
+    gaussians = read_ply(workspace / "a.ply")
+    assert decoded["gaussians"] == len(gaussians) == 2 * WIDTH * HEIGHT - decoded["pruned"]
+    assert decoded["lambda"] == 64 and bool((gaussians.opacities >= 1 / 255).all())
+
+    orbit = codecsplat(workspace, "render", "a.csplat", "--orbit", "4", "-o", "orbit", "--format", "gif")
+    gif = iio.imread(workspace / "orbit" / "render.gif", index=None)
+    assert orbit["frames"] == 4 and gif.shape[:3] == (4, HEIGHT, WIDTH)
+
+    posed = codecsplat(workspace, "render", "a.csplat", "--cameras", "scenes/a/cameras.json", "-o", "frames")
+    assert posed["frames"] == 6 and len(list((workspace / "frames").glob("frame_*.png"))) == 6
+    frame = iio.imread(workspace / "frames" / "frame_0003.png")
+    assert frame.shape == (HEIGHT, WIDTH, 3) and frame.std() > 0
+
+
+def test_eval_writes_both_tables_with_baselines_and_plots(workspace):
+    result = codecsplat(workspace, "eval", "--data", "scenes", "--protocol", "scene", "--lambdas", "16,1024",
+                        "--targets", "2", "--png-sh-clusters", "64", "--kmeans-iterations", "2", "-o", "eval")
+    methods = [(s["method"], s["setting"]) for s in result["summary"]]
+    assert methods == [("CodecSplat", "λ=16"), ("CodecSplat", "λ=1024"), ("CodecSplat w/o codec→PLY", "float32"),
+                       ("CodecSplat w/o codec→PLY+Deflate", "16/8-bit"), ("CodecSplat w/o codec→PNG", "K_SH=64"),
+                       ("CodecSplat w/ Deflate", "float16 features")]
+    assert result["scenes"] == ["a", "b"] and len(result["rows"]) == 2 * 6
+    for row in result["summary"]:
+        assert row["samples"] == 2 and row["bytes"] > 0 and 0 < row["ssim"] <= 1 and row["psnr"] > 0
+        assert min(row["gen_s"], row["compress_s"], row["decompress_s"]) > 0
+    raw_ply = result["summary"][2]["bytes"]
+    assert all(s["bytes"] < raw_ply for s in result["summary"] if s is not result["summary"][2])
+    markdown = (workspace / "eval" / "tables.md").read_text()
+    assert "Table 1" in markdown and "Table 2" in markdown and "CodecSplat w/o codec→PNG" in markdown
+    assert "λ=16,…,1024" in result["tables"]["table2"]
+    for name in ("rate_distortion.png", "distortion_vs_time.png"):
+        assert iio.imread(workspace / "eval" / name).shape[0] > 100
+    assert json.loads((workspace / "eval" / "results.json").read_text())["summary"] == result["summary"]
+
+
+def test_demo_writes_bitstreams_renders_ply_metrics_and_plots(workspace):
+    summary = codecsplat(workspace, "demo", "--lambdas", "16,1024", "-o", "demo")
+    out = workspace / "demo"
+    assert [r["lam"] for r in summary["rows"]] == [16, 1024]
+    for row in summary["rows"]:
+        assert row["bytes"] == (out / f"scene-lambda{row['lam']:g}.csplat").stat().st_size and row["psnr"] > 0
+    assert len(read_ply(out / "scene.ply")) == summary["ply"]["gaussians"]
+    for name in ("comparison.png", "rate_distortion.png", "renders/target1-lambda1024.png", "summary.json"):
+        assert (out / name).is_file(), name
+    assert all((workspace / f).is_file() for f in summary["files"])
+
+
+def _one_line_error(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("codecsplat: error:"), err
+    return err[0]
+
+
+def test_user_mistakes_exit_1_with_one_line(workspace, capsys):
+    ckpt = ["--checkpoint", str(workspace / "tiny.safetensors"), "--device", "cpu"]
+    assert main(["decode", str(workspace / "missing.csplat"), "-o", str(workspace / "x.ply"), *ckpt]) == EXIT_USER
+    assert "does not exist" in _one_line_error(capsys)
+    (workspace / "junk.csplat").write_bytes(b"CSPL" + bytes(40))
+    assert main(["decode", str(workspace / "junk.csplat"), "-o", str(workspace / "x.ply"), *ckpt]) == EXIT_USER
+    assert "bitstream" in _one_line_error(capsys)
+    scene = str(workspace / "scenes" / "a")
+    assert main(["encode", scene, "--views", "0,9", "-o", str(workspace / "x.csplat"), *ckpt]) == EXIT_USER
+    assert "out of range" in _one_line_error(capsys)
+    assert main(["encode", scene, "--lambda", "5000", "-o", str(workspace / "x.csplat"), *ckpt]) == EXIT_USER
+    assert "5000" in _one_line_error(capsys)
+    assert main(["encode", scene, "--size", "50x32", "-o", str(workspace / "x.csplat"), *ckpt]) == EXIT_USER
+    assert "multiples of 4" in _one_line_error(capsys)
+    assert main(["render", "x.csplat", "-o", "out", *ckpt]) == EXIT_USER
+    assert "--cameras" in _one_line_error(capsys)
+    assert main(["eval", "--data", scene, "--baselines", "zip", *ckpt]) == EXIT_USER
+    assert "zip" in _one_line_error(capsys)
+    assert not (workspace / "x.csplat").exists()
+
+
+def test_demo_without_a_shipped_model_says_so(tmp_path, capsys, monkeypatch):
+    from codecsplat_warp.model import pretrained
+
+    monkeypatch.setattr(pretrained, "DEFAULT_CHECKPOINT", tmp_path / "codecsplat-default.safetensors")
+    assert main(["demo", "--device", "cpu", "-o", str(tmp_path / "demo")]) == EXIT_USER
+    assert "no model is shipped" in _one_line_error(capsys)
+
+
+@pytest.mark.skipif(mp4_plugin() is not None, reason="an MP4 plugin is installed")
+def test_mp4_without_a_video_plugin_names_the_extra(workspace, capsys):
+    args = ["render", "a.csplat", "--orbit", "2", "-o", str(workspace / "mp4"), "--format", "mp4", "--device", "cpu"]
+    assert main(args) == EXIT_USER
+    assert "pip install imageio-ffmpeg" in _one_line_error(capsys)
+    assert not (workspace / "mp4").exists()
+
+
+def test_encode_default_views_are_spread_over_the_scene(workspace):
+    result = codecsplat(workspace, "encode", "scenes/b", "-o", "b.csplat")
+    assert result["views"] == [0, 5] and (result["width"], result["height"]) == (WIDTH, HEIGHT)
+    assert load_scene(workspace / "scenes" / "b").num_views == 6
+
+
+def test_every_benchmark_is_a_bench_subcommand():
+    assert "codec" in BENCHMARKS
+    for name in BENCHMARKS:
+        assert build_parser().parse_args(["bench", name, "--device", "cpu"]).benchmark == name

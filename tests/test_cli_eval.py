@@ -1,0 +1,100 @@
+"""Pieces of ``codecsplat eval``: view selection, scene discovery, option checks, summaries and the tables."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from codecsplat_warp.cameras import Cameras, intrinsics_matrix
+from codecsplat_warp.errors import DataError, InputError
+from codecsplat_warp.data import split_context_targets
+from codecsplat_warp.evaluate import (EvalConfig, Row, evaluate, find_scenes, format_bytes, summarize,
+                                      table1, table2)
+from test_cli_commands import write_scene
+
+
+def _line_of_cameras(count: int) -> Cameras:
+    f = torch.full((count,), 20.0, dtype=torch.float64)
+    c2w = torch.eye(4, dtype=torch.float64).repeat(count, 1, 1)
+    c2w[:, 0, 3] = torch.arange(count, dtype=torch.float64)
+    return Cameras.from_c2w(intrinsics_matrix(f, f, f * 0 + 8, f * 0 + 8), c2w, torch.full((count,), 0.1),
+                            torch.full((count,), 10.0), 16, 16)
+
+
+def test_evaluation_views_split_the_anchors_neighbourhood():
+    cameras = _line_of_cameras(10)  # centres at x = 0..9: by distance to view 4 the order is 4, 3, 5, 2, 6
+    assert split_context_targets(cameras, anchor=4, num_context=2, num_target=3) == ([4, 6], [3, 5, 2])
+    context, target = split_context_targets(cameras, anchor=0, num_context=3, num_target=2)
+    assert context == [0, 2, 4] and target == [1, 3]
+    with pytest.raises(DataError, match="need 11"):
+        split_context_targets(cameras, 0, 8, 3)
+
+
+def test_find_scenes(tmp_path):
+    write_scene(tmp_path / "root" / "b", seed=1, views=3)
+    write_scene(tmp_path / "root" / "a", seed=2, views=3)
+    (tmp_path / "root" / "notes").mkdir()
+    assert [p.name for p in find_scenes(tmp_path / "root")] == ["a", "b"]
+    assert find_scenes(tmp_path / "root" / "a") == [tmp_path / "root" / "a"]
+    with pytest.raises(DataError, match="does not exist"):
+        find_scenes(tmp_path / "nowhere")
+    with pytest.raises(DataError, match="no pose file"):
+        find_scenes(tmp_path / "root" / "notes")
+
+
+@pytest.mark.parametrize("changes,match", [({"protocol": "llff"}, "unknown protocol"),
+                                           ({"baselines": ("zip",)}, "unknown baseline"),
+                                           ({"lambdas": (8.0,)}, "lambda"), ({"lambdas": ()}, "at least one"),
+                                           ({"target_views": 0}, "target views"), ({"samples_per_scene": 0}, "samples"),
+                                           ({"png_sh_clusters": 70000}, "sh_clusters")])
+def test_bad_options_are_input_errors_before_any_work(tmp_path, changes, match):
+    config = EvalConfig(data=str(tmp_path / "nowhere"), out=str(tmp_path / "out"), **changes)
+    with pytest.raises(InputError, match=match):
+        evaluate(None, config, torch.device("cpu"))
+    assert not (tmp_path / "out").exists()
+
+
+def _row(scene, method, setting, size, psnr, lam=None, seconds=(1.0, 2.0, 3.0)):
+    return Row(scene, method, setting, size, {"psnr": psnr, "ssim": 0.5}, *seconds, lam=lam)
+
+
+def test_summary_means_and_paper_tables():
+    rows = [_row("a", "CodecSplat", "λ=16", 1000, 20.0, 16.0), _row("b", "CodecSplat", "λ=16", 3000, 22.0, 16.0),
+            _row("a", "CodecSplat", "λ=1024", 5000, 25.0, 1024.0, (1.0, 4.0, 5.0)),
+            _row("a", "CodecSplat w/o codec→PNG", "K_SH=8192", 3 * 2**20, 26.0)]
+    summary = summarize(rows)
+    assert [(s["method"], s["samples"]) for s in summary] == [("CodecSplat", 2), ("CodecSplat", 1),
+                                                               ("CodecSplat w/o codec→PNG", 1)]
+    assert summary[0]["bytes"] == 2000 and summary[0]["psnr"] == 21.0
+    first = table1(summary).splitlines()
+    assert first[0].startswith("| Method | Codec Setting | Bytes/scene") and "LPIPS-Alex" in first[0]
+    assert first[2].startswith("| CodecSplat w/o codec→PNG | K_SH=8192 | 3.00 MiB | 26.00 | 0.500 | n/a | n/a |")
+    assert first[3] == "| CodecSplat | λ=16 | 1.95 KiB | 21.00 | 0.500 | n/a | n/a |"
+    second = table2(summary).splitlines()
+    assert second[-1] == "| CodecSplat | λ=16,…,1024 | 1.000 | 3.000 | 4.000 |"
+    assert format_bytes(1536) == "1.50 KiB" and format_bytes(2**20) == "1.00 MiB"
+
+
+def test_an_interrupted_eval_keeps_the_samples_it_finished(tmp_path, monkeypatch):
+    from codecsplat_warp.evaluate import Evaluator
+    from codecsplat_warp.model import CodecSplat, get_preset
+
+    for name, seed in (("a", 1), ("b", 2)):
+        write_scene(tmp_path / "data" / name, seed=seed, views=3)
+
+    def run_once(self, sample, progress=None):
+        if (tmp_path / "out" / "results.json").exists():
+            raise KeyboardInterrupt
+        return [_row(sample.scene, "CodecSplat", "λ=16", 100, 20.0, 16.0)]
+
+    monkeypatch.setattr(Evaluator, "run", run_once)
+    monkeypatch.setattr(Evaluator, "warm_up", lambda self, sample: None)
+    config = EvalConfig(data=str(tmp_path / "data"), out=str(tmp_path / "out"), protocol="scene", target_views=1,
+                        progress=False)
+    with pytest.raises(KeyboardInterrupt):
+        evaluate(CodecSplat(get_preset("tiny"), codec=True), config, torch.device("cpu"))
+    saved = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert (saved["samples_done"], saved["samples_total"]) == (1, 2) and [r["scene"] for r in saved["rows"]] == ["a"]
+    assert saved["summary"][0]["psnr"] == 20.0 and not (tmp_path / "out" / "tables.md").exists()
