@@ -1,0 +1,78 @@
+"""``codecsplat bench report`` (codecsplat_warp.bench.report): Pareto fronts, the quick report's files, codec hook."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import torch
+
+from codecsplat_warp.bench import report
+
+
+def test_pareto_front_of_a_known_toy_set():
+    points = [(1, 5), (2, 3), (3, 4), (2, 3), (4, 1), (5, 1), (0.5, 10), (3, 3), (6, 0.5)]
+    assert report.pareto_front(points) == [True, True, False, True, True, False, True, False, True]
+
+
+def test_pareto_fronts_are_per_kernel_phase_and_size():
+    def row(kernel, size, time_ms, error):
+        return {"kernel": kernel, "phase": "forward", "size": size, "time_ms": time_ms, "error": error}
+
+    rows = [row("unproject", "tiny", 1.0, 1e-7), row("unproject", "tiny", 2.0, 1e-16),
+            row("unproject", "tiny", 3.0, 1e-7), row("unproject", "small", 5.0, 1e-3),
+            row("rasterize", "tiny", 9.0, 1e-2),
+            {"kernel": "rasterize", "phase": "forward", "size": "tiny", "time_ms": 1.0, "error": None}]  # fmt: skip
+    report.mark_pareto(rows)
+    assert [r["pareto"] for r in rows] == [True, True, False, True, True, None]
+
+
+def _args(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--device", default="cpu")
+    report.add_arguments(parser)
+    return parser.parse_args(list(argv))
+
+
+def test_quick_report_writes_json_markdown_and_png(tmp_path):
+    """float32 only: the float64 rasterizer kernels would add ~25 s of compilation on a cold CPU cache."""
+    out = tmp_path / "report"
+    result = report.run(_args("--quick", "--out-dir", str(out), "--kernels", "unproject,rasterize", "--no-codec",
+                              "--dtypes", "float32", "--reps", "1"))  # fmt: skip
+    saved = json.loads((out / "report.json").read_text())
+    assert saved["rows"] == json.loads(json.dumps(result["rows"]))
+    rows = saved["rows"]
+    assert not [r for r in rows if "failed" in r]
+    assert {(r["kernel"], r["phase"]) for r in rows} == {(k, p) for k in ("unproject", "rasterize")
+                                                          for p in ("forward", "backward")}  # fmt: skip
+    for r in rows:
+        assert r["time_ms"] > 0 and r["reference"] == "torch float64 (CPU)"
+        assert r["dtype"] == "float32" and 0 < r["error"] < 1e-4, r
+    assert all(r["psnr_db"] > 100 for r in rows if r["kernel"] == "rasterize" and r["phase"] == "forward")
+    groups = {report.group_key(r) for r in rows}
+    assert all(any(r["pareto"] for r in rows if report.group_key(r) == g) for g in groups)
+    text = (out / "report.md").read_text()
+    assert "## unproject" in text and "## rasterize" in text and "tile_size=8" in text and "★" in text
+    assert "early-stop transmittance" in text and "skipped (--no-codec)" in text
+    png = (out / "pareto.png").read_bytes()
+    assert png.startswith(b"\x89PNG\r\n\x1a\n") and len(png) > 10_000
+    assert not list(out.glob("*.tmp*"))
+
+
+def test_codec_hook_measures_psnr_against_encode_decode_time(tmp_path):
+    from codecsplat_warp.model import CodecSplat
+    from codecsplat_warp.model.config import PRESETS
+
+    assert report.codec_available()
+    model = CodecSplat(PRESETS["tiny"], codec=True).eval()
+    device = torch.device("cpu")
+    context, targets, scene = report.codec_scene(model.config, device)
+    rows = report.measure_codec(model, context, targets, [32.0, 512.0], device, reps=1, scene=scene)
+    assert [r["config"] for r in rows] == ["lambda=32", "lambda=512"]
+    for r in rows:
+        assert r["kernel"] == "codec" and r["bytes"] > 0 and r["time_ms"] > 0
+        assert abs(r["error"] - 10 ** (-r["psnr_db"] / 10)) < 1e-12
+    result = report.finish({"quick": True, "commit": "test", "machines": {"cpu": "test machine"}, "rows": rows,
+                            "not_exposed": {}, "codec": f"measured on {scene}"}, tmp_path)  # fmt: skip
+    assert any(r["pareto"] for r in result["rows"])
+    assert "## codec" in (tmp_path / "report.md").read_text() and (tmp_path / "pareto.png").is_file()
