@@ -3,6 +3,7 @@ estimate against coded bytes, foreign bitstreams, pretrained files, and the diff
 
 from __future__ import annotations
 
+import copy
 import json
 
 import pytest
@@ -14,7 +15,9 @@ from codecsplat_warp.codec import LAMBDA_MAX, LAMBDA_MIN, DecodedScene, bytes_re
 from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
 from codecsplat_warp.errors import BitstreamError, DataError, DeviceMismatchError, InputError
 from codecsplat_warp.model import CodecSplat, get_preset
-from codecsplat_warp.model.pretrained import DEFAULT_CHECKPOINT, load_pretrained, model_id, save_pretrained
+from codecsplat_warp.model.pretrained import (
+    DEFAULT_CHECKPOINT, load_pretrained, model_id, round_to_half, save_pretrained,
+)
 
 TINY = get_preset("tiny")
 POSTERIOR_GAIN = 30.0
@@ -169,6 +172,22 @@ def test_pretrained_round_trip_and_missing_files(tmp_path, coded):
             load_pretrained()
     with pytest.raises(InputError, match="codec"):
         save_pretrained(CodecSplat(TINY), tmp_path / "stage1.safetensors")
+
+
+def test_half_storage_round_trips_exactly_and_refuses_unrounded_weights(tmp_path, coded):
+    model = copy.deepcopy(coded[0])
+    with pytest.raises(InputError, match="round_to_half"):
+        save_pretrained(model, tmp_path / "h.safetensors", half=True)
+    path = save_pretrained(round_to_half(model), tmp_path / "h.safetensors", half=True)
+    full = save_pretrained(model, tmp_path / "f.safetensors")
+    assert path.stat().st_size < 0.6 * full.stat().st_size
+    assert model_id(load_pretrained(path, device="cpu")) == model_id(model)
+
+
+def test_shipped_model_loads_and_fits_in_16_mb():
+    assert DEFAULT_CHECKPOINT.stat().st_size <= 16_000_000
+    model = load_pretrained(device="cpu")
+    assert model.has_codec and model.config.name == "re10k"
 
 
 def test_re10k_pretrained_file_fits_in_16_mib(tmp_path):

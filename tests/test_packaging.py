@@ -24,6 +24,7 @@ def test_wheel_installs_in_fresh_venv_and_imports_kernels(tmp_path):
     names = zipfile.ZipFile(wheel).namelist()
     assert "codecsplat_warp/kernels/reproject.py" in names
     assert not any(n.startswith("kernels/") for n in names), "no top-level kernels package may ship"
+    assert "codecsplat_warp/assets/codecsplat-default.safetensors" in names, "the shipped model must be in the wheel"
     for init in (ROOT / "codecsplat_warp").rglob("__init__.py"):
         assert init.relative_to(ROOT).as_posix() in names, f"{init.parent.name} is missing from pyproject's packages"
 

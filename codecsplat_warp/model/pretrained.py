@@ -57,18 +57,35 @@ def model_id(model: torch.nn.Module) -> str:
     return hashlib.sha256((weights_digest(model) + entropy_model_digest()).encode()).hexdigest()[:16]
 
 
-def save_pretrained(model: torch.nn.Module, path) -> pathlib.Path:
+def round_to_half(model: torch.nn.Module) -> torch.nn.Module:
+    """Round every floating weight of ``model`` to float16 precision in place (kept in its dtype), so that it can
+    be stored by :func:`save_pretrained` with ``half=True`` at half the size; returns the model."""
+    with torch.no_grad():
+        for tensor in model.state_dict().values():
+            if tensor.is_floating_point():
+                tensor.copy_(tensor.half())
+    return model
+
+
+def save_pretrained(model: torch.nn.Module, path, half: bool = False) -> pathlib.Path:
     """Write ``model`` (a :class:`CodecSplat` with its codec) as one safetensors file, atomically.
 
+    Args:
+        half: store the weights as float16 (half the file size); they must already be float16 values
+            (:func:`round_to_half`), so loading gives back exactly the model that was saved (same model id).
     Returns:
         the path written.
     Raises:
-        InputError: the model has no codec (a stage-1 model cannot encode or decode bitstreams).
+        InputError: the model has no codec (a stage-1 model cannot encode or decode bitstreams), or ``half``
+            with weights that float16 does not represent exactly.
     """
     if getattr(model, "codec", None) is None:
         raise InputError("only a CodecSplat with its codec (codec=True, stage 2) can be saved as a pretrained model")
     path = pathlib.Path(path)
-    tensors = {name: t.detach().to("cpu", torch.float32).contiguous() for name, t in model.state_dict().items()}
+    storage = torch.float16 if half else torch.float32
+    tensors = {name: t.detach().to("cpu", storage).contiguous() for name, t in model.state_dict().items()}
+    if half and any(not torch.equal(tensors[n].float(), t.detach().cpu().float()) for n, t in model.state_dict().items()):
+        raise InputError("half=True needs weights that are float16 values: call round_to_half(model) first")
     metadata = {"format": FORMAT, "config": json.dumps(model.config.to_dict()), "weights_sha256": weights_digest(model),
                 "model_id": model_id(model)}
     path.parent.mkdir(parents=True, exist_ok=True)
