@@ -48,6 +48,7 @@ from .common import format_table, machine_name, time_call, write_json
 from .extreme import COST_VOLUME, RASTER_NAMES, RASTERIZE, REPROJECT, UNPROJECT, Op, Problem, device_arguments
 from .extreme import forward_backward as _forward_backward
 from .extreme import reference_arguments
+from .geometry import SHAPES, Shape
 from .raster import Workload, make_scene
 
 DENSE_REFERENCE_LIMIT = 20_000_000
@@ -69,27 +70,15 @@ NOT_EXPOSED = {
 
 # --------------------------------------------------------------------------------------------------
 # Configurations
-@dataclass(frozen=True)
-class GeometrySize:
-    """A multi-view problem: ``views`` cameras at ``image_h`` x ``image_w``, ``channels`` features on a
-    ``grid_h`` x ``grid_w`` grid (unprojection uses the grid as its depth map)."""
-
-    name: str
-    views: int
-    channels: int
-    grid_h: int
-    grid_w: int
-    image_h: int
-    image_w: int
-
-
 GEOMETRY_SIZES = {
-    "tiny": GeometrySize("tiny", 2, 8, 16, 16, 32, 32),
-    "small": GeometrySize("small", 2, 32, 32, 32, 64, 64),
-    "re10k-64": GeometrySize("re10k-64", 2, 64, 64, 64, 256, 256),
-    "dl3dv-64": GeometrySize("dl3dv-64", 8, 64, 64, 112, 256, 448),
+    "tiny": Shape("tiny", 2, 8, 16, 16, 32, 32),
+    "small": Shape("small", 2, 32, 32, 32, 64, 64),
+    "re10k-64": SHAPES["re10k-64"],
+    "dl3dv-64": SHAPES["dl3dv-64"],
 }
-"""Scene sizes of the geometry kernels (the RE10K/DL3DV ones are those of ``bench geometry``)."""
+"""Scene sizes of the geometry kernels (:class:`.geometry.Shape`: ``views`` cameras at ``image_h`` x ``image_w``,
+``channels`` features on a ``grid_h`` x ``grid_w`` grid, which unprojection uses as its depth map); the RE10K/DL3DV
+ones are those of ``bench geometry``."""
 
 RASTER_SIZES = {
     "tiny": Workload("tiny", 1, 24, 24),
