@@ -23,11 +23,12 @@ from tqdm import tqdm
 
 from codecsplat_warp.device import resolve_device
 from codecsplat_warp.errors import InputError
+from codecsplat_warp.metrics.image import psnr
 from codecsplat_warp.model import CodecSplat, ModelConfig
 
 from .checkpoint import latest_checkpoint, load_model_weights
 from .data import TrainingSample, real_scene_source
-from .stage1 import METRICS_FILE, psnr
+from .stage1 import METRICS_FILE
 
 
 @dataclass
@@ -54,9 +55,9 @@ def score_scene(model: CodecSplat, root, scene: str, samples: int, device: torch
     for index in range(samples):
         sample = source(index).to(device)
         gaussians = model(sample.context_images, sample.context_cameras)["gaussians"]
-        rgb = model.render(gaussians, sample.target_cameras)["rgb"].clamp(0, 1)
-        model_scores.append(float(psnr(rgb, sample.target_images)))
-        baseline_scores.append(float(psnr(nearest_context_images(sample), sample.target_images)))
+        rgb = model.render(gaussians, sample.target_cameras)["rgb"]
+        model_scores.append(float(psnr(rgb, sample.target_images).mean()))
+        baseline_scores.append(float(psnr(nearest_context_images(sample), sample.target_images).mean()))
     return SceneScore(scene, samples, sum(model_scores) / samples, sum(baseline_scores) / samples)
 
 
