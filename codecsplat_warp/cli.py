@@ -116,6 +116,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--lambdas", default=",".join(f"{x:g}" for x in PAPER_LAMBDAS), help="CodecSplat lambdas")
     evaluate.add_argument("--baselines", default=",".join(BASELINE_NAMES),
                           help=f"comma list of {', '.join(BASELINE_NAMES)}, or none")
+    evaluate.add_argument("--scenes", default="", help="comma list of scene folder names to keep (default: all)")
     evaluate.add_argument("--samples-per-scene", type=int, default=1)
     evaluate.add_argument("--targets", type=int, help="target views per sample (default: the protocol's, 3)")
     evaluate.add_argument("--lpips-weights", help="folder with lpips_{vgg,alex}.safetensors (default $CODECSPLAT_LPIPS_WEIGHTS)")
@@ -359,7 +360,8 @@ def _cmd_eval(args) -> int:
                         lambdas=tuple(_number_list(float, args.lambdas, "--lambdas")), baselines=baselines,
                         samples_per_scene=args.samples_per_scene, target_views=args.targets,
                         lpips_weights=args.lpips_weights, png_sh_clusters=args.png_sh_clusters,
-                        kmeans_iterations=args.kmeans_iterations, progress=not args.json)
+                        kmeans_iterations=args.kmeans_iterations, progress=not args.json,
+                        scenes=tuple(name.strip() for name in args.scenes.split(",") if name.strip()))
     result = evaluate(model, config, device)
     lines = [f"{len(result['scenes'])} scene(s), {args.protocol} protocol, {result['machine']}",
              "", "Table 1", result["tables"]["table1"], "", "Table 2 (seconds)", result["tables"]["table2"], "",

@@ -135,6 +135,20 @@ def find_scenes(path) -> list[pathlib.Path]:
     return scenes
 
 
+def select_scenes(paths: list[pathlib.Path], names: tuple[str, ...]) -> list[pathlib.Path]:
+    """The ``paths`` whose folder name is in ``names`` (all of them when ``names`` is empty).
+
+    Raises:
+        DataError: a name matches no path (the error lists the scenes found).
+    """
+    if not names:
+        return paths
+    missing = sorted(set(names) - {p.name for p in paths})
+    if missing:
+        raise DataError(f"scene(s) {', '.join(missing)} not found; found {', '.join(p.name for p in paths)}")
+    return [p for p in paths if p.name in names]
+
+
 def scene_samples(path: pathlib.Path, protocol: Protocol, context_views: int, samples: int) -> list[Sample]:
     """``samples`` items of one scene, anchors evenly spread over its views, preprocessed to the protocol.
 
@@ -435,6 +449,8 @@ class EvalConfig:
     png_sh_clusters: int = 8192
     kmeans_iterations: int = 10
     progress: bool = True
+    scenes: tuple[str, ...] = ()
+    """Scene folder names to keep (e.g. the held-out ones); empty keeps every scene under ``data``."""
 
 
 def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
@@ -460,7 +476,7 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
     png = PngCompression(sh_clusters=config.png_sh_clusters, kmeans_iterations=config.kmeans_iterations)
     metrics = ImageMetrics(config.lpips_weights, device)
     samples, skipped = [], []
-    for path in find_scenes(config.data):
+    for path in select_scenes(find_scenes(config.data), config.scenes):
         try:
             samples += scene_samples(path, protocol, protocol.context_views or model.config.num_views,
                                      config.samples_per_scene)

@@ -10,7 +10,7 @@ import torch
 from codecsplat_warp.cameras import Cameras, intrinsics_matrix
 from codecsplat_warp.errors import DataError, InputError
 from codecsplat_warp.data import split_context_targets
-from codecsplat_warp.evaluate import (EvalConfig, Row, evaluate, find_scenes, format_bytes, summarize,
+from codecsplat_warp.evaluate import (EvalConfig, Row, evaluate, find_scenes, format_bytes, select_scenes, summarize,
                                       table1, table2)
 from test_cli_commands import write_scene
 
@@ -42,6 +42,11 @@ def test_find_scenes(tmp_path):
         find_scenes(tmp_path / "nowhere")
     with pytest.raises(DataError, match="no pose file"):
         find_scenes(tmp_path / "root" / "notes")
+    found = find_scenes(tmp_path / "root")
+    assert select_scenes(found, ()) == found
+    assert [p.name for p in select_scenes(found, ("b",))] == ["b"]
+    with pytest.raises(DataError, match="c not found; found a, b"):
+        select_scenes(found, ("b", "c"))
 
 
 @pytest.mark.parametrize("changes,match", [({"protocol": "llff"}, "unknown protocol"),

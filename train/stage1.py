@@ -7,6 +7,9 @@ Resumable checkpoints (see :mod:`train.checkpoint`), TensorBoard logs and a tqdm
     python -m train.stage1 --preset re10k --data procedural --steps 100000 --out runs/stage1-re10k
     torchrun --nproc_per_node 4 -m train.stage1 ...        # DDP, one scene per GPU per step
 
+The global batch is ``world_size * accumulate`` scenes per optimiser step: ``--accumulate 2`` on one GPU
+sees the same scenes per step as two DDP processes (sample ``(step * accumulate + micro) * world + rank``).
+
 Rerunning the same command after an interruption continues from the last checkpoint. SIGTERM (or
 ``--time-limit-s``) ends a run cleanly after the current step, with a checkpoint of that step.
 """
@@ -14,6 +17,7 @@ Rerunning the same command after an interruption continues from the last checkpo
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -64,10 +68,13 @@ class TrainConfig:
     device: str = "auto"
     workers: int = 4
     time_limit_s: float = 0.0
+    accumulate: int = 1
 
 
 LOGGED = ("loss", "mse", "lpips", "psnr", "grad_norm", "lr")
-"""Training metrics written every ``log_every`` steps (TensorBoard and :data:`METRICS_FILE`)."""
+"""Training metrics written every ``log_every`` steps (TensorBoard and :data:`METRICS_FILE`), averaged over the
+step's scenes (micro-batches and DDP ranks); each record also has ``step``, ``elapsed_s`` (wall seconds since
+this process started training, resumed chunks restart it) and ``scenes`` (global scenes per step)."""
 
 METRICS_FILE = "metrics.jsonl"
 """One JSON object per logged step under the run folder (read by :mod:`train.validate` for curves)."""
@@ -153,17 +160,36 @@ STAGE1 = Stage(
     lambda model, lpips, sample, config, step: stage1_loss(model, lpips, sample, config.lpips_weight), LOGGED)
 
 
-def train_step(model, lpips, optimizer, scheduler, sample: TrainingSample, config: TrainConfig, step: int = 0,
-               stage: Stage = STAGE1) -> dict:
-    """One optimisation step (forward, backward, clip, AdamW, scheduler); returns its metrics."""
+def train_step(model, lpips, optimizer, scheduler, samples: list[TrainingSample], config: TrainConfig,
+               step: int = 0, stage: Stage = STAGE1) -> dict:
+    """One optimisation step over ``samples`` (micro-batches, gradients accumulated; DDP all-reduces only on
+    the last one): forward, backward of the mean loss, clip, AdamW, scheduler; returns the metrics averaged
+    over the micro-batches (``grad_norm`` and ``lr`` of the step)."""
     optimizer.zero_grad(set_to_none=True)
-    loss, metrics = stage.loss(model, lpips, sample, config, step)
-    loss.backward()
-    metrics["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip))
+    totals: dict[str, float] = {}
+    for index, sample in enumerate(samples):
+        last = index == len(samples) - 1
+        sync = contextlib.nullcontext() if last or not hasattr(model, "no_sync") else model.no_sync()
+        with sync:
+            loss, metrics = stage.loss(model, lpips, sample, config, step)
+            (loss / len(samples)).backward()
+        for name, value in metrics.items():
+            totals[name] = totals.get(name, 0.0) + value / len(samples)
+    totals["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip))
     optimizer.step()
     scheduler.step()
-    metrics["lr"] = scheduler.get_last_lr()[0]
-    return metrics
+    totals["lr"] = scheduler.get_last_lr()[0]
+    return totals
+
+
+def mean_over_ranks(metrics: dict[str, float], world: int, device: torch.device) -> dict[str, float]:
+    """``metrics`` averaged over the DDP ranks (every rank must call it at the same step); unchanged if world is 1."""
+    if world <= 1:
+        return metrics
+    names = sorted(metrics)
+    values = torch.tensor([float(metrics[n]) for n in names], dtype=torch.float64, device=device)
+    dist.all_reduce(values, op=dist.ReduceOp.SUM)
+    return dict(zip(names, (values / world).tolist()))
 
 
 def _distributed() -> tuple[int, int, int]:
@@ -215,7 +241,8 @@ def train(config: TrainConfig, source: Source | None = None, model_config: Model
     trained = torch.nn.parallel.DistributedDataParallel(
         model, device_ids=[local_rank] if device.type == "cuda" else None) if world > 1 else model
 
-    loader = _loader(source, start, config.steps, rank, world, config.workers if device.type == "cuda" else 0)
+    loader = _loader(source, start, config.steps, rank, world, config.accumulate,
+                     config.workers if device.type == "cuda" else 0)
     writer = None
     if rank == 0:
         try:
@@ -234,16 +261,19 @@ def train(config: TrainConfig, source: Source | None = None, model_config: Model
     stop_requested = threading.Event()
     previous_handler = signal.signal(signal.SIGTERM, lambda *_: stop_requested.set())
     try:
-        for step, sample in zip(range(start, config.steps), loader):
-            metrics = train_step(trained, lpips, optimizer, scheduler, sample.to(device), config, step, stage)
+        for step, samples in zip(range(start, config.steps), _micro_batches(loader, config.accumulate)):
+            samples = [sample.to(device) for sample in samples]
+            metrics = train_step(trained, lpips, optimizer, scheduler, samples, config, step, stage)
             metrics.update(step=step + 1, resumed_from=start)
             bar.update(1)
             bar.set_postfix(loss=f"{metrics['loss']:.4f}", psnr=f"{metrics['psnr']:.2f}")
-            if writer is not None and (step + 1) % config.log_every == 0:
-                logged = {k: metrics[k] for k in stage.logged if k in metrics}
-                for name, value in logged.items():
-                    writer.add_scalar(f"train/{name}", value, step + 1)
-                append_metrics(out / METRICS_FILE, {"step": step + 1, **logged})
+            if (step + 1) % config.log_every == 0:
+                logged = mean_over_ranks({k: metrics[k] for k in stage.logged if k in metrics}, world, device)
+                if writer is not None:
+                    for name, value in logged.items():
+                        writer.add_scalar(f"train/{name}", value, step + 1)
+                    append_metrics(out / METRICS_FILE, {"step": step + 1, **logged, "scenes": world * config.accumulate,
+                                                        "elapsed_s": round(time.monotonic() - began, 3)})
             stop = stop_requested.is_set() or (config.time_limit_s > 0 and time.monotonic() - began > config.time_limit_s)
             stop = _agree(stop, world, device)
             if (step + 1) % config.checkpoint_every == 0 or step + 1 == config.steps or stop:
@@ -272,12 +302,23 @@ def _agree(stop: bool, world: int, device: torch.device) -> bool:
     return bool(flag.item())
 
 
-def _loader(source: Source, start: int, steps: int, rank: int, world: int, workers: int):
-    """Samples for steps start..steps-1 of this rank (global index step * world + rank), prefetched by workers."""
-    indices = [step * world + rank for step in range(start, steps)]
-    dataset = StepDataset(source, steps * world)
+def _loader(source: Source, start: int, steps: int, rank: int, world: int, accumulate: int, workers: int):
+    """Samples of this rank for steps start..steps-1, ``accumulate`` per step (global index
+    ``(step * accumulate + micro) * world + rank``), prefetched by workers."""
+    indices = [(step * accumulate + micro) * world + rank for step in range(start, steps) for micro in range(accumulate)]
+    dataset = StepDataset(source, steps * accumulate * world)
     return torch.utils.data.DataLoader(dataset, sampler=indices, batch_size=None, num_workers=workers,
                                        persistent_workers=False, prefetch_factor=2 if workers else None)
+
+
+def _micro_batches(loader, accumulate: int):
+    """Groups of ``accumulate`` consecutive samples of ``loader`` (one group per optimiser step)."""
+    group = []
+    for sample in loader:
+        group.append(sample)
+        if len(group) == accumulate:
+            yield group
+            group = []
 
 
 def parse_args(argv: list[str] | None = None, config_class: type = TrainConfig, prog: str = "python -m train.stage1",
@@ -289,8 +330,8 @@ def parse_args(argv: list[str] | None = None, config_class: type = TrainConfig, 
         parser.add_argument("--" + field.name.replace("_", "-"), type=kind, default=field.default)
     args = parser.parse_args(argv)
     config = config_class(**vars(args))
-    if config.steps < 1 or config.checkpoint_every < 1 or config.log_every < 1:
-        raise InputError("--steps, --checkpoint-every and --log-every must be >= 1")
+    if config.steps < 1 or config.checkpoint_every < 1 or config.log_every < 1 or config.accumulate < 1:
+        raise InputError("--steps, --checkpoint-every, --log-every and --accumulate must be >= 1")
     return config
 
 
