@@ -10,8 +10,8 @@ Rules every op in this package follows (and that this module implements):
 * Tensors cross to Warp zero-copy (:func:`to_warp`): ``wp.from_torch(t.detach(), requires_grad=False)``;
   gradients are returned as fresh tensors by the autograd Functions, never through Warp's grad arrays
   (wrapping a leaf that requires grad would double its gradient, Warp issue #159).
-* Kernels are launched through :func:`launch`, which resolves a generic kernel's overload once per
-  combination of argument types and then passes tensors as raw array descriptors (low host overhead).
+* Kernels are launched through :func:`launch`, which checks and records a launch once per combination of
+  argument types (and thread) and then replays it with tensors as raw array descriptors (low host overhead).
 * Non-contiguous inputs are made contiguous deliberately (a copy only when needed) by
   :func:`check_tensor`; wrong shapes or dtypes raise :class:`~codecsplat_warp.errors.InputError`.
 * Finite-value checks (one device-to-host sync each) run unless ``CODECSPLAT_VALIDATE=0`` is set or
@@ -21,6 +21,8 @@ Rules every op in this package follows (and that this module implements):
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import functools
 import os
 import threading
 from dataclasses import dataclass
@@ -28,6 +30,7 @@ from typing import Iterator, Sequence
 
 import torch
 import warp as wp
+from warp._src.types import array_t  # the descriptor type wp.from_torch(return_ctype=True) returns
 
 from .errors import DeviceMismatchError, InputError
 
@@ -170,21 +173,27 @@ def _grouped(tensor: torch.Tensor, inner: tuple[int, ...]) -> Grouped:
     return Grouped(tensor, inner)
 
 
-_RESOLVED_LAUNCHES: dict[tuple, tuple] = {}
-"""(kernel, adjoint, argument type keys) -> (concrete overload, element rank of every argument: None for a
-scalar or None, 0 for a scalar array, 1 for vectors, 2 for matrices)."""
+_RESOLVED_OVERLOADS: dict[tuple, tuple] = {}
+"""(kernel, adjoint, argument type keys) -> (concrete overload, Warp element dtype of every argument: None for
+scalars and None)."""
+
+_resolve_lock = threading.Lock()
+_thread_state = threading.local()
+"""``commands``: this thread's recorded launches (a ``wp.Launch`` is mutable, so threads never share one)."""
 
 
 def launch(
     kernel, dim, args: Sequence, device, *, adj_args: Sequence | None = None, block_dim: int | None = None
 ) -> None:
-    """Launch a Warp kernel on tensors zero-copy, with the host overhead of a generic kernel paid once.
+    """Launch a Warp kernel on tensors zero-copy, with Warp's per-launch argument processing paid once.
 
-    The first launch of ``kernel`` with a combination of argument types (torch dtype and rank of every
-    tensor, type of every scalar) wraps the tensors as ``wp.array`` and goes through all of Warp's argument
-    checks; it also instantiates the concrete overload of a generic kernel. Later launches with the same
-    types reuse that overload and pass each tensor as a raw array descriptor (no type inference, no
-    ``wp.array`` objects). Nothing runs when a launch dimension is 0.
+    The first launch of ``kernel`` with a combination of argument types (torch dtype, rank and grouped
+    trailing shape of every tensor, type of every scalar) on a device, in a thread, wraps the tensors as
+    ``wp.array`` and goes through all of Warp's argument checks (instantiating the concrete overload of a
+    generic kernel), then records the launch as a ``wp.Launch`` command (``record_cmd=True``). Later launches
+    with the same types replay that command: every tensor becomes a raw array descriptor that holds no
+    reference to it (the command keeps no tensor alive), scalars are written in place, and the launch
+    dimensions are updated when they change. Nothing runs when a launch dimension is 0.
 
     Args:
         kernel: a ``@wp.kernel``, generic (``typing.Any`` annotations) or concrete.
@@ -200,30 +209,141 @@ def launch(
     Raises:
         InputError: a tensor argument is not contiguous.
     """
-    if 0 in ((dim,) if isinstance(dim, int) else tuple(dim)):
+    dims = (dim,) if isinstance(dim, int) else tuple(dim)
+    if 0 in dims:
         return
     adjoint = adj_args is not None
     adj_args = adj_args or ()
-    key = (kernel, adjoint, *map(_type_key, args), *map(_type_key, adj_args))
-    resolved = _RESOLVED_LAUNCHES.get(key)
-    if resolved is None:
+    key = (kernel, adjoint, block_dim, device.alias, *map(_type_key, args), *map(_type_key, adj_args))
+    commands = _thread_commands()
+    command = commands.get(key)
+    if command is None:
+        commands[key] = _Command.first_launch(kernel, dims, args, adj_args, adjoint, block_dim, device)
+    else:
+        command.replay(dims, args, adj_args)
+
+
+def _thread_commands() -> dict:
+    commands = getattr(_thread_state, "commands", None)
+    if commands is None:
+        commands = _thread_state.commands = {}
+    return commands
+
+
+class _Command:
+    """A recorded ``wp.Launch`` of one concrete kernel, replayed with new arguments of the recorded types.
+
+    Warp's ``Launch`` keeps the packed value of forward argument ``i`` in ``params[1 + i]`` (launch bounds
+    first) and of adjoint argument ``i`` after all forward ones. Both launch paths read those objects when
+    launched (the CPU path copies them into its argument struct, the CUDA path passes their addresses), so a
+    replay updates them in place: the data pointer of each array descriptor (shape and strides only when
+    they change) and the value of each scalar.
+
+    Attributes:
+        recorded: the ``wp.Launch``.
+        slots: per forward then adjoint argument, the :class:`_ArraySlot`, :class:`_ScalarSlot` or
+            :class:`_PackedSlot` that writes it, or None for a None argument (its null array stays).
+        dims: the launch dimensions last set (without the lane dimension of a tiled launch).
+        lanes: ``(block_dim,)``, the lane dimension ``wp.launch_tiled`` appends, or ``()``.
+    """
+
+    def __init__(self, recorded, slots: list, dims: tuple, tiled: bool):
+        self.recorded = recorded
+        self.slots = slots
+        self.dims = dims
+        self.lanes = (recorded.block_dim,) if tiled else ()
+
+    @classmethod
+    def first_launch(cls, kernel, dims, args, adj_args, adjoint: bool, block_dim: int | None, device) -> "_Command":
+        """Launch with every Warp check, then record the command for later launches of the same types."""
         with _resolve_lock:  # concurrent CPU launches (run_concurrently) must not compile a module twice
-            if key not in _RESOLVED_LAUNCHES:
-                dtypes = [_element_dtype(a) for a in (*args, *adj_args)]
-                concrete = _concrete_overload(kernel, args, dtypes)
-                inputs = _wrap_arrays(args, dtypes, concrete)
-                adj_inputs = _wrap_arrays(adj_args, dtypes[len(args):], concrete)
-                _launch_resolved(concrete, dim, inputs, adj_inputs, adjoint, block_dim, device)
-                _RESOLVED_LAUNCHES[key] = (concrete, dtypes)
-                return
-        resolved = _RESOLVED_LAUNCHES[key]
-    concrete, dtypes = resolved
-    inputs = _describe_arrays(args, dtypes, concrete)
-    adj_inputs = _describe_arrays(adj_args, dtypes[len(args):], concrete)
-    _launch_resolved(concrete, dim, inputs, adj_inputs, adjoint, block_dim, device)
+            concrete, dtypes = _resolve_overload(kernel, adjoint, args, adj_args)
+            inputs = _wrap_arrays(args, dtypes, concrete)
+            adj_inputs = _wrap_arrays(adj_args, dtypes[len(args):], concrete)
+            _launch_checked(concrete, dims, inputs, adj_inputs, adjoint, block_dim, device)
+            positions = [*range(len(args)), *range(len(adj_args))]
+            packed = [_descriptor(a, d, concrete, i) if d is not None else a
+                      for a, d, i in zip((*args, *adj_args), dtypes, positions)]  # fmt: skip
+            recorded = _launch_checked(concrete, dims, packed[: len(args)], packed[len(args):], adjoint, block_dim,
+                                       device, record_cmd=True)  # fmt: skip
+        slots = [_slot(recorded, a, d, i, j >= len(args), recorded.params[1 + j])
+                 for j, (a, d, i) in enumerate(zip((*args, *adj_args), dtypes, positions))]  # fmt: skip
+        return cls(recorded, slots, dims, tiled=block_dim is not None)
+
+    def replay(self, dims: tuple, args: Sequence, adj_args: Sequence) -> None:
+        """Write the new arguments (and dimensions) into the recorded command and launch it."""
+        if dims != self.dims:
+            self.recorded.set_dim((*dims, *self.lanes))
+            self.dims = dims
+        for slot, value in zip(self.slots, (*args, *adj_args)):
+            if slot is not None:
+                slot.write(value)
+        self.recorded.launch()
 
 
-_resolve_lock = threading.Lock()
+class _ArraySlot:
+    """Writes a tensor (or :class:`Grouped`) into a recorded array descriptor."""
+
+    __slots__ = ("descriptor", "scalar_bytes", "shape", "label", "kernel_key")
+
+    def __init__(self, descriptor: array_t, scalar_bytes: int, shape: torch.Size, label: str, kernel_key: str):
+        self.descriptor, self.scalar_bytes, self.shape = descriptor, scalar_bytes, shape
+        self.label, self.kernel_key = label, kernel_key
+
+    def write(self, arg) -> None:
+        tensor = arg.tensor if isinstance(arg, Grouped) else arg
+        if not tensor.is_contiguous():
+            raise InputError(f"tensor for argument {self.label!r} of kernel {self.kernel_key} must be contiguous")
+        descriptor = self.descriptor
+        descriptor.data = tensor.data_ptr()
+        shape = tensor.shape
+        if shape != self.shape:
+            strides = tensor.stride()
+            for d in range(descriptor.ndim):
+                descriptor.shape[d] = shape[d]
+                descriptor.strides[d] = strides[d] * self.scalar_bytes
+            self.shape = shape
+
+
+class _ScalarSlot:
+    """Writes a Python number, or the ``.value`` of a Warp scalar, into a recorded ctypes scalar."""
+
+    __slots__ = ("ctype", "warp_scalar")
+
+    def __init__(self, ctype, warp_scalar: bool):
+        self.ctype, self.warp_scalar = ctype, warp_scalar
+
+    def write(self, value) -> None:
+        self.ctype.value = value.value if self.warp_scalar else value
+
+
+class _PackedSlot:
+    """Writes any other value through Warp's own argument packing."""
+
+    __slots__ = ("recorded", "index", "adjoint")
+
+    def __init__(self, recorded, index: int, adjoint: bool):
+        self.recorded, self.index, self.adjoint = recorded, index, adjoint
+
+    def write(self, value) -> None:
+        self.recorded.set_param_at_index(self.index, value, self.adjoint)
+
+
+_HALF_TYPES = (wp.float16, wp.bfloat16)
+
+
+def _slot(recorded, arg, dtype, position: int, adjoint: bool, param):
+    """The slot writing argument ``position`` (adjoint or not) of a recorded launch (see :class:`_Command`)."""
+    kernel = recorded.kernel
+    if dtype is not None:
+        tensor = arg.tensor if isinstance(arg, Grouped) else arg
+        return _ArraySlot(param, ctypes.sizeof(dtype._type_), tensor.shape, kernel.adj.args[position].label,
+                          kernel.key)  # fmt: skip
+    if arg is None:
+        return None
+    if kernel.adj.args[position].type in _HALF_TYPES or not wp.types.type_is_scalar(type(arg)):
+        return _PackedSlot(recorded, position, adjoint)
+    return _ScalarSlot(param, warp_scalar=not isinstance(arg, (int, float)))
 
 
 def row_chunks(rows: int, device: torch.device) -> list[tuple[int, int]]:
@@ -278,11 +398,17 @@ def _element_dtype(arg):
     return None
 
 
-def _concrete_overload(kernel, args: Sequence, dtypes: Sequence):
-    """The kernel itself, or for a generic kernel its overload for these arguments (instantiated once)."""
-    if not kernel.is_generic:
-        return kernel
-    return wp.overload(kernel, kernel.infer_argument_types(_wrap_arrays(args, dtypes, kernel)))
+def _resolve_overload(kernel, adjoint: bool, args: Sequence, adj_args: Sequence) -> tuple:
+    """(concrete overload, element dtypes of all arguments), instantiated once per combination of types."""
+    key = (kernel, adjoint, *map(_type_key, args), *map(_type_key, adj_args))
+    resolved = _RESOLVED_OVERLOADS.get(key)
+    if resolved is None:
+        dtypes = [_element_dtype(a) for a in (*args, *adj_args)]
+        concrete = kernel
+        if kernel.is_generic:
+            concrete = wp.overload(kernel, kernel.infer_argument_types(_wrap_arrays(args, dtypes, kernel)))
+        resolved = _RESOLVED_OVERLOADS[key] = (concrete, dtypes)
+    return resolved
 
 
 def _tensor_of(arg, position: int, kernel) -> torch.Tensor:
@@ -301,23 +427,21 @@ def _wrap_arrays(args: Sequence, dtypes: Sequence, kernel) -> list:
     ]
 
 
-def _describe_arrays(args: Sequence, dtypes: Sequence, kernel) -> list:
-    """Arguments with tensors as light Warp array descriptors (``wp.from_torch(..., return_ctype=True)``);
-    their types were checked by the first launch with these argument types."""
-    return [
-        arg if dtype is None
-        else wp.from_torch(_tensor_of(arg, i, kernel).detach(), dtype=dtype, requires_grad=False, return_ctype=True)
-        for i, (arg, dtype) in enumerate(zip(args, dtypes))
-    ]
+def _descriptor(arg, dtype, kernel, position: int) -> array_t:
+    """Warp array descriptor (element ``dtype``) of a contiguous tensor or :class:`Grouped`, holding no reference
+    to it: the caller keeps the tensor alive for the launch (a CUDA launch copies the descriptor when issued)."""
+    tensor = _tensor_of(arg, position, kernel)
+    ndim = tensor.dim() - (len(arg.inner) if isinstance(arg, Grouped) else 0)
+    scalar_bytes, strides = ctypes.sizeof(dtype._type_), tensor.stride()
+    return array_t(tensor.data_ptr(), 0, ndim, tensor.shape, [strides[d] * scalar_bytes for d in range(ndim)])
 
 
-def _launch_resolved(kernel, dim, inputs, adj_inputs, adjoint: bool, block_dim: int | None, device) -> None:
-    if block_dim is None:
-        wp.launch(kernel, dim=dim, inputs=inputs, adj_inputs=adj_inputs, adjoint=adjoint, device=device)
-    else:
-        wp.launch_tiled(
-            kernel, dim=dim, inputs=inputs, adj_inputs=adj_inputs, adjoint=adjoint, block_dim=block_dim, device=device
-        )
+def _launch_checked(kernel, dims, inputs, adj_inputs, adjoint: bool, block_dim: int | None, device,
+                    record_cmd: bool = False):  # fmt: skip
+    """``wp.launch`` (or ``wp.launch_tiled`` with ``block_dim``) with Warp's full argument processing."""
+    launcher = wp.launch if block_dim is None else functools.partial(wp.launch_tiled, block_dim=block_dim)
+    return launcher(kernel, dim=dims, inputs=inputs, adj_inputs=adj_inputs, adjoint=adjoint, device=device,
+                    record_cmd=record_cmd)  # fmt: skip
 
 
 def common_device(**tensors: torch.Tensor | None) -> torch.device:

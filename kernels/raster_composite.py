@@ -10,9 +10,17 @@ one-pixel block stages its own copy).
 
 Constants are gsplat's: ``alpha = min(0.999, opacity * exp(-power))``; rows with ``power < 0`` or
 ``alpha < 1/255`` are skipped; a pixel stops (exclusively) at the first row whose
-``T * (1 - alpha) <= 1e-4``. The forward saves the final transmittance ``T`` and the sorted index of the
-last contributing row; the backward walks that pixel's rows back to front, rebuilding ``T`` by division
-(Warp's automatic adjoint cannot differentiate this early-exit loop). Row layout: see
+``T * (1 - alpha) <= min_transmittance`` (a kernel argument; gsplat's constant is 1e-4). The forward
+saves the final transmittance ``T``, the accumulated depth and the sorted index of the last contributing
+row; the backward walks that pixel's rows back to front from that index, rebuilding ``T`` by division
+from the final ``T`` (Warp's automatic adjoint cannot differentiate this early-exit loop). The saved index
+*is* the stopping point, so the backward needs no threshold. Rebuilding ``T`` by division is accurate while
+the final ``T`` stays far from underflow, which a threshold such as 1e-4 guarantees (a threshold of 0 does
+not: behind a nearly opaque stack a float32 ``T`` underflows after about a dozen layers).
+
+Expected depth is normalised in the kernels, ``sum w z / max(alpha, MIN_ALPHA_FOR_DEPTH)`` (gsplat's
+RGB+ED), with its gradient. An absent output is a zero-length array: no background (``[0, 3]``), no depth
+(``[0]``), no gradient for an output (``[0]`` or ``[0, 3]``). Row layout: see
 :mod:`codecsplat_warp.kernels.raster_project`.
 """
 
@@ -30,7 +38,8 @@ ROWS = wp.constant(10)
 
 MAX_ALPHA = 0.999
 MIN_ALPHA = 1.0 / 255.0
-MIN_TRANSMITTANCE = 1.0e-4
+MIN_ALPHA_FOR_DEPTH = 1.0e-10
+"""Expected depth is ``sum w z / max(alpha, MIN_ALPHA_FOR_DEPTH)`` (gsplat's RGB+ED normalisation)."""
 
 
 @wp.func
@@ -64,18 +73,17 @@ def composite_kernels(batch: int):
         sorted_ids: wp.array(dtype=wp.int32),
         splats: wp.array2d(dtype=Any),
         background: wp.array2d(dtype=Any),
-        use_background: int,
-        render_depth: int,
         width: int,
         height: int,
         tile_size: int,
         tiles_x: int,
         tiles_per_image: int,
         blocks_per_tile: int,
+        min_transmittance: Any,
         out_color: wp.array2d(dtype=Any),
         out_depth: wp.array(dtype=Any),
         out_alpha: wp.array(dtype=Any),
-        out_transmittance: wp.array(dtype=Any),
+        out_state: wp.array2d(dtype=Any),
         out_last: wp.array(dtype=wp.int32),
     ):
         """Composite every pixel front to back.
@@ -83,11 +91,11 @@ def composite_kernels(batch: int):
         Args:
             ranges: ``[B * tiles_per_image, 2]`` half-open ranges into ``sorted_ids``.
             sorted_ids: ``[M]`` flat row indices sorted by (camera, tile, depth).
-            splats: projected rows ``[B*N, 10]``; background: ``[B, 3]`` (read when ``use_background``).
-            render_depth: 1 to accumulate ``sum w_i z_i`` into ``out_depth``.
-            out_color: ``[B*H*W, 3]`` colour incl. background; out_depth: ``[B*H*W]`` accumulated depth;
-            out_alpha: ``1 - T``; out_transmittance: final ``T``; out_last: sorted index of the last
-                contributing row (``range start - 1`` when none).
+            splats: projected rows ``[B*N, 10]``; background: ``[B, 3]``, or ``[0, 3]`` for black.
+            min_transmittance: a pixel stops before the first row that takes ``T`` to this or below, in [0, 1).
+            out_color: ``[B*H*W, 3]`` colour incl. background; out_depth: ``[B*H*W]`` expected depth, or ``[0]``
+                to skip depth; out_alpha: ``1 - T``; out_state: ``[B*H*W, 2]`` final ``T`` and accumulated depth
+                ``sum w z``; out_last: sorted index of the last contributing row (``range start - 1`` when none).
         """
         block, lane = wp.tid()
         where = tile_pixel(block, lane, blocks_per_tile, tile_size, tiles_x, tiles_per_image)
@@ -101,6 +109,7 @@ def composite_kernels(batch: int):
         one = out_alpha.dtype(1.0)
         cx = out_alpha.dtype(float(px)) + out_alpha.dtype(0.5)
         cy = out_alpha.dtype(float(py)) + out_alpha.dtype(0.5)
+        render_depth = out_depth.shape[0] > 0
         T = one
         r = zero
         g = zero
@@ -119,14 +128,14 @@ def composite_kernels(batch: int):
                     if power < zero or alpha < out_alpha.dtype(MIN_ALPHA):
                         continue
                     next_T = T * (one - alpha)
-                    if next_T <= out_alpha.dtype(MIN_TRANSMITTANCE):
+                    if next_T <= min_transmittance:
                         done = True
                         break
                     weight = alpha * T
                     r += weight * rows[t, 6]
                     g += weight * rows[t, 7]
                     b += weight * rows[t, 8]
-                    if render_depth != 0:
+                    if render_depth:
                         depth += weight * rows[t, 9]
                     last = batch_start + t
                     T = next_T
@@ -134,20 +143,21 @@ def composite_kernels(batch: int):
             if finished[0] == wp.block_dim():
                 break
         if inside:
-            pixel = (where[1] * height + py) * width + px
-            if use_background != 0:
-                r += T * background[where[1], 0]
-                g += T * background[where[1], 1]
-                b += T * background[where[1], 2]
+            camera = where[1]
+            pixel = (camera * height + py) * width + px
+            if background.shape[0] > 0:
+                r += T * background[camera, 0]
+                g += T * background[camera, 1]
+                b += T * background[camera, 2]
             out_color[pixel, 0] = r
             out_color[pixel, 1] = g
             out_color[pixel, 2] = b
-            if render_depth != 0:
-                out_depth[pixel] = depth
             out_alpha[pixel] = one - T
-            out_transmittance[pixel] = T
+            if render_depth:
+                out_depth[pixel] = depth / wp.max(one - T, out_alpha.dtype(MIN_ALPHA_FOR_DEPTH))
+            out_state[pixel, 0] = T
+            out_state[pixel, 1] = depth
             out_last[pixel] = last
-
 
     @wp.kernel(enable_backward=False, module="unique")
     def composite_backward(
@@ -155,15 +165,13 @@ def composite_kernels(batch: int):
         sorted_ids: wp.array(dtype=wp.int32),
         splats: wp.array2d(dtype=Any),
         background: wp.array2d(dtype=Any),
-        use_background: int,
-        render_depth: int,
         width: int,
         height: int,
         tile_size: int,
         tiles_x: int,
         tiles_per_image: int,
         blocks_per_tile: int,
-        final_transmittance: wp.array(dtype=Any),
+        state: wp.array2d(dtype=Any),
         last_index: wp.array(dtype=wp.int32),
         grad_color: wp.array2d(dtype=Any),
         grad_depth: wp.array(dtype=Any),
@@ -174,8 +182,9 @@ def composite_kernels(batch: int):
 
         Args:
             ranges, sorted_ids, splats, background, ...: as in :func:`composite_forward`.
-            final_transmittance, last_index: saved by the forward, ``[B*H*W]``.
-            grad_color: ``[B*H*W, 3]``; grad_depth: ``[B*H*W]`` (of the accumulated depth); grad_alpha: ``[B*H*W]``.
+            state, last_index: saved by the forward, ``[B*H*W, 2]`` and ``[B*H*W]``.
+            grad_color: ``[B*H*W, 3]``; grad_depth: ``[B*H*W]`` (of the expected depth); grad_alpha: ``[B*H*W]``;
+                each ``[0]`` (``[0, 3]``) when that output has no gradient.
             grad_splats: ``[B*N, 10]`` zero-initialised, accumulated with atomics.
         """
         block, lane = wp.tid()
@@ -186,10 +195,10 @@ def composite_kernels(batch: int):
         inside = px < width and py < height
         start = ranges[tile, 0]
         end = ranges[tile, 1]
-        zero = grad_alpha.dtype(0.0)
-        one = grad_alpha.dtype(1.0)
-        cx = grad_alpha.dtype(float(px)) + grad_alpha.dtype(0.5)
-        cy = grad_alpha.dtype(float(py)) + grad_alpha.dtype(0.5)
+        zero = grad_splats.dtype(0.0)
+        one = grad_splats.dtype(1.0)
+        cx = grad_splats.dtype(float(px)) + grad_splats.dtype(0.5)
+        cy = grad_splats.dtype(float(py)) + grad_splats.dtype(0.5)
 
         last = start - 1
         T_final = one
@@ -200,19 +209,26 @@ def composite_kernels(batch: int):
         v_alpha_out = zero
         background_dot = zero
         if inside:
-            pixel = (where[1] * height + py) * width + px
+            camera = where[1]
+            pixel = (camera * height + py) * width + px
             last = last_index[pixel]
-            T_final = final_transmittance[pixel]
-            v_r = grad_color[pixel, 0]
-            v_g = grad_color[pixel, 1]
-            v_b = grad_color[pixel, 2]
-            if render_depth != 0:
-                v_depth = grad_depth[pixel]
-            v_alpha_out = grad_alpha[pixel]
-            if use_background != 0:
-                background_dot = (
-                    background[where[1], 0] * v_r + background[where[1], 1] * v_g + background[where[1], 2] * v_b
-                )
+            T_final = state[pixel, 0]
+            if grad_color.shape[0] > 0:
+                v_r = grad_color[pixel, 0]
+                v_g = grad_color[pixel, 1]
+                v_b = grad_color[pixel, 2]
+            if grad_alpha.shape[0] > 0:
+                v_alpha_out = grad_alpha[pixel]
+            if grad_depth.shape[0] > 0:
+                # expected depth E = D / max(alpha, eps): dE/dD = 1 / max(alpha, eps); dE/dalpha = -E / max(alpha, eps)
+                # where alpha >= eps (torch's clamp_min gradient), else 0
+                alpha_out = one - T_final
+                denominator = wp.max(alpha_out, grad_splats.dtype(MIN_ALPHA_FOR_DEPTH))
+                v_depth = grad_depth[pixel] / denominator
+                if alpha_out >= grad_splats.dtype(MIN_ALPHA_FOR_DEPTH):
+                    v_alpha_out -= grad_depth[pixel] * ((state[pixel, 1] / denominator) / denominator)
+            if background.shape[0] > 0:
+                background_dot = background[camera, 0] * v_r + background[camera, 1] * v_g + background[camera, 2] * v_b
         # Rows after the block's largest last index contribute to no pixel of the block: skip them.
         block_last = wp.tile_max(wp.tile(last))[0]
         T = T_final
@@ -231,8 +247,8 @@ def composite_kernels(batch: int):
                 power = gaussian_power(rows, t, cx, cy)
                 vis = wp.exp(-power)
                 opacity = rows[t, 5]
-                alpha = wp.min(grad_alpha.dtype(MAX_ALPHA), opacity * vis)
-                if power < zero or alpha < grad_alpha.dtype(MIN_ALPHA):
+                alpha = wp.min(grad_splats.dtype(MAX_ALPHA), opacity * vis)
+                if power < zero or alpha < grad_splats.dtype(MIN_ALPHA):
                     continue
                 ra = one / (one - alpha)
                 T = T * ra
@@ -248,17 +264,17 @@ def composite_kernels(batch: int):
                 wp.atomic_add(grad_splats, row, 6, weight * v_r)
                 wp.atomic_add(grad_splats, row, 7, weight * v_g)
                 wp.atomic_add(grad_splats, row, 8, weight * v_b)
-                if render_depth != 0:
+                if grad_depth.shape[0] > 0:
                     wp.atomic_add(grad_splats, row, 9, weight * v_depth)
-                if opacity * vis <= grad_alpha.dtype(MAX_ALPHA):
+                if opacity * vis <= grad_splats.dtype(MAX_ALPHA):
                     v_power = -opacity * vis * v_alpha
                     dx = rows[t, 0] - cx
                     dy = rows[t, 1] - cy
                     wp.atomic_add(grad_splats, row, 0, v_power * (rows[t, 2] * dx + rows[t, 3] * dy))
                     wp.atomic_add(grad_splats, row, 1, v_power * (rows[t, 3] * dx + rows[t, 4] * dy))
-                    wp.atomic_add(grad_splats, row, 2, grad_alpha.dtype(0.5) * v_power * dx * dx)
+                    wp.atomic_add(grad_splats, row, 2, grad_splats.dtype(0.5) * v_power * dx * dx)
                     wp.atomic_add(grad_splats, row, 3, v_power * dx * dy)
-                    wp.atomic_add(grad_splats, row, 4, grad_alpha.dtype(0.5) * v_power * dy * dy)
+                    wp.atomic_add(grad_splats, row, 4, grad_splats.dtype(0.5) * v_power * dy * dy)
                     wp.atomic_add(grad_splats, row, 5, vis * v_alpha)
                 acc_r += c_r * weight
                 acc_g += c_g * weight

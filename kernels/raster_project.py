@@ -13,9 +13,15 @@ compositing kernels stage through shared memory):
     6..8  colour RGB (SH evaluated towards the Gaussian, + 0.5, clamped at 0; or the given RGB)
     9     camera-space depth z
 
+:func:`prepare_cameras` runs first, on one thread: it validates the cameras (and background) and makes
+them camera-relative. A float32 position far from the world origin loses its digits in ``R x + t`` (the two
+terms cancel); so the world is translated by the mean camera centre ``o`` (computed in float64 and rounded
+to the Gaussians' dtype): the projection kernels use ``x - o`` and viewmats ``V T(o)`` composed in float64.
+A pure translation: images are unchanged and the gradient of ``x - o`` is the identity.
+
 :func:`project_gaussians` also culls (non-finite, z outside (near, far), det <= 0 after the blur,
 opacity < 1/255, off-screen), writes integer pixel radii from the opacity-aware extent
-``min(3.33, sqrt(2 ln(255 opacity)))`` sigma, the number of 16x16 tiles each row touches, and input
+``min(3.33, sqrt(2 ln(255 opacity)))`` sigma, the number of tiles each row touches, and input
 validation flags. :func:`project_gaussians_differentiable` recomputes only the differentiable row of the
 visible Gaussians and is launched with ``adjoint=True`` for the backward pass (straight-line code, so
 Warp's automatic adjoint is exact; a float64 gradcheck covers it).
@@ -39,10 +45,11 @@ MAX_EXTENT_SIGMAS = 3.33
 ROW_WIDTH = 10
 """Scalars per projected row."""
 
-(BAD_MEANS, BAD_QUATS, BAD_SCALES, BAD_OPACITIES, BAD_COLORS, BAD_VIEWMATS, BAD_KS, ZERO_QUATS,
- HUGE_COVARIANCE) = range(9)
-"""Slots of the validation flag array (count of offending rows per argument)."""
-NUM_FLAGS = 9
+(BAD_MEANS, BAD_QUATS, BAD_SCALES, BAD_OPACITIES, BAD_COLORS, BAD_VIEWMATS, BAD_KS, BAD_BACKGROUND, ZERO_QUATS,
+ HUGE_COVARIANCE) = range(10)
+"""Slots of the int64 validation flag array: non-finite rows per Gaussian argument, non-finite entries per
+camera argument, zero quaternions, covariances that overflow."""
+NUM_FLAGS = 10
 
 
 @wp.func
@@ -173,45 +180,98 @@ def write_row(
 
 
 @wp.func
-def flag_non_finite3(v: Any, flags: wp.array(dtype=wp.int32), slot: int):
+def flag_non_finite3(v: Any, flags: wp.array(dtype=wp.int64), slot: int):
     if not (wp.isfinite(v[0]) and wp.isfinite(v[1]) and wp.isfinite(v[2])):
-        wp.atomic_add(flags, slot, 1)
+        wp.atomic_add(flags, slot, wp.int64(1))
 
 
 @wp.func
-def validate_inputs(
-    b: int,
-    n: int,
-    mean: Any,
-    quat: Any,
-    scale: Any,
-    opacity: Any,
-    coeffs: wp.array2d(dtype=Any),
-    viewmat: Any,
-    K: Any,
-    flags: wp.array(dtype=wp.int32),
+def validate_gaussian(
+    n: int, mean: Any, quat: Any, scale: Any, opacity: Any, coeffs: wp.array2d(dtype=Any),
+    flags: wp.array(dtype=wp.int64),
+):  # fmt: skip
+    """Count the non-finite rows per argument of Gaussian ``n``, and a zero quaternion."""
+    flag_non_finite3(mean, flags, BAD_MEANS)
+    flag_non_finite3(scale, flags, BAD_SCALES)
+    if not (wp.isfinite(quat[0]) and wp.isfinite(quat[1]) and wp.isfinite(quat[2]) and wp.isfinite(quat[3])):
+        wp.atomic_add(flags, BAD_QUATS, wp.int64(1))
+    elif quat_scale(quat) == type(opacity)(0.0):
+        wp.atomic_add(flags, ZERO_QUATS, wp.int64(1))
+    if not wp.isfinite(opacity):
+        wp.atomic_add(flags, BAD_OPACITIES, wp.int64(1))
+    for k in range(coeffs.shape[1]):
+        flag_non_finite3(coeffs[n, k], flags, BAD_COLORS)
+
+
+@wp.func
+def non_finite_count(values: wp.array3d(dtype=Any), b: int):
+    """Number of NaN/Inf entries of matrix ``values[b]``."""
+    count = wp.int64(0)
+    for r in range(values.shape[1]):
+        for c in range(values.shape[2]):
+            if not wp.isfinite(values[b, r, c]):
+                count += wp.int64(1)
+    return count
+
+
+@wp.kernel(enable_backward=False, module="unique")
+def prepare_cameras(
+    viewmats: wp.array3d(dtype=Any),
+    Ks: wp.array3d(dtype=Any),
+    background: wp.array2d(dtype=Any),
+    camera_relative: int,
+    out_viewmats: wp.array3d(dtype=Any),
+    out_Ks: wp.array3d(dtype=Any),
+    origin: wp.array(dtype=Any),
+    flags: wp.array(dtype=wp.int64),
 ):
-    """Count non-finite rows per argument (Gaussians on camera 0, cameras on Gaussian 0) and zero quaternions."""
-    if b == 0:
-        flag_non_finite3(mean, flags, BAD_MEANS)
-        flag_non_finite3(scale, flags, BAD_SCALES)
-        if not (wp.isfinite(quat[0]) and wp.isfinite(quat[1]) and wp.isfinite(quat[2]) and wp.isfinite(quat[3])):
-            wp.atomic_add(flags, BAD_QUATS, 1)
-        elif quat_scale(quat) == type(opacity)(0.0):
-            wp.atomic_add(flags, ZERO_QUATS, 1)
-        if not wp.isfinite(opacity):
-            wp.atomic_add(flags, BAD_OPACITIES, 1)
-        for k in range(coeffs.shape[1]):
-            flag_non_finite3(coeffs[n, k], flags, BAD_COLORS)
-    if n == 0:
+    """Validate the cameras, cast them to the Gaussians' dtype and make them camera-relative (``dim=1``).
+
+    Args:
+        viewmats: ``[B,4,4]`` world-to-camera, any float dtype; Ks: ``[B,3,3]`` intrinsics in pixels.
+        background: ``[B,3]`` colours, or ``[0,3]`` for none (only validated here).
+        camera_relative: 1 to translate the world by the mean camera centre (float32 Gaussians), 0 for none.
+        out_viewmats: ``[B,4,4]`` ``viewmats T(origin)`` composed in float64, in the output dtype;
+        out_Ks: ``[B,3,3]`` the intrinsics in the output dtype; origin: ``[3]`` the mean camera centre rounded
+            to the output dtype (world units), or 0.
+        flags: ``[NUM_FLAGS]`` validation counters: camera and background slots set, Gaussian slots zeroed.
+    """
+    num = viewmats.shape[0]
+    for slot in range(NUM_FLAGS):
+        flags[slot] = wp.int64(0)
+    bad_background = wp.int64(0)
+    for b in range(background.shape[0]):
+        for c in range(3):
+            if not wp.isfinite(background[b, c]):
+                bad_background += wp.int64(1)
+    flags[BAD_BACKGROUND] = bad_background
+    centre_sum = wp.vec3d()
+    for b in range(num):
+        flags[BAD_VIEWMATS] = flags[BAD_VIEWMATS] + non_finite_count(viewmats, b)
+        flags[BAD_KS] = flags[BAD_KS] + non_finite_count(Ks, b)
+        centre = wp.vec3d()
+        for j in range(3):
+            for r in range(3):
+                centre[j] = centre[j] + wp.float64(viewmats[b, r, j]) * wp.float64(viewmats[b, r, 3])
+        centre_sum = centre_sum - centre
+    shift = wp.vec3d()
+    for j in range(3):
+        origin[j] = origin.dtype(0.0)
+        if camera_relative != 0 and num > 0:
+            origin[j] = origin.dtype(centre_sum[j] / wp.float64(num))
+        shift[j] = wp.float64(origin[j])
+    for b in range(num):
         for r in range(4):
-            for c in range(4):
-                if not wp.isfinite(viewmat[r, c]):
-                    wp.atomic_add(flags, BAD_VIEWMATS, 1)
+            for c in range(3):
+                out_viewmats[b, r, c] = origin.dtype(viewmats[b, r, c])
+            translation = wp.float64(viewmats[b, r, 3])
+            if camera_relative != 0:
+                translation = (wp.float64(viewmats[b, r, 0]) * shift[0] + wp.float64(viewmats[b, r, 1]) * shift[1]
+                               + wp.float64(viewmats[b, r, 2]) * shift[2] + translation)  # fmt: skip
+            out_viewmats[b, r, 3] = origin.dtype(translation)
         for r in range(3):
             for c in range(3):
-                if not wp.isfinite(K[r, c]):
-                    wp.atomic_add(flags, BAD_KS, 1)
+                out_Ks[b, r, c] = origin.dtype(Ks[b, r, c])
 
 
 @wp.func
@@ -238,6 +298,7 @@ def project_gaussians(
     coeffs: wp.array2d(dtype=Any),
     viewmats: wp.array(dtype=Any),
     Ks: wp.array(dtype=Any),
+    origin: wp.array(dtype=Any),
     sh_degree: int,
     width: int,
     height: int,
@@ -251,31 +312,35 @@ def project_gaussians(
     splats: wp.array2d(dtype=Any),
     radii: wp.array(dtype=wp.vec2i),
     tile_counts: wp.array(dtype=wp.int64),
-    flags: wp.array(dtype=wp.int32),
+    flags: wp.array(dtype=wp.int64),
 ):
     """Project, cull and bin-count every (camera b, Gaussian n); launch with ``dim=(B, N)``.
 
     Args:
         means, scales: ``[N]`` 3-vectors (world units); quats: ``[N]`` wxyz 4-vectors; opacities: ``[N]`` in [0, 1].
         coeffs: ``[N, K]`` RGB vectors: SH coefficients (``sh_degree`` 0..3) or the colour (``sh_degree = -1``, K = 1).
-        viewmats: ``[B]`` 4x4 world-to-camera; Ks: ``[B]`` 3x3 intrinsics in pixels.
+        viewmats: ``[B]`` 4x4 camera-relative world-to-camera, Ks: ``[B]`` 3x3 intrinsics in pixels, origin:
+            ``[3]`` the world translation, all from :func:`prepare_cameras`.
         near, far: depth range (exclusive); eps2d: low-pass blur in px^2 (0.3); antialiased: 1 to scale
             opacity by the blur compensation ``sqrt(det / det_blur)``.
         splats: output rows ``[B*N, 10]`` (zero for culled Gaussians); radii: ``[B*N]`` pixel radii (0 = culled);
-        tile_counts: ``[B*N]`` int64 tiles touched; flags: ``[8]`` validation counters (zero-initialised).
+        tile_counts: ``[B*N]`` int64 tiles touched; flags: ``[NUM_FLAGS]`` validation counters (Gaussian slots
+            zeroed by :func:`prepare_cameras`).
     """
     b, n = wp.tid()
     num = means.shape[0]
     i = b * num + n
-    mean = means[n]
     quat = quats[n]
     scale = scales[n]
     opacity = opacities[n]
     viewmat = viewmats[b]
     K = Ks[b]
-    validate_inputs(b, n, mean, quat, scale, opacity, coeffs, viewmat, K, flags)
+    if b == 0:
+        validate_gaussian(n, means[n], quat, scale, opacity, coeffs, flags)
+    mean = means[n] - wp.vector(origin[0], origin[1], origin[2])
 
     zero = type(opacity)(0.0)
+    write_row(splats, i, wp.vector(zero, zero), wp.vector(zero, zero, zero), zero, wp.vector(zero, zero, zero), zero)
     radii[i] = wp.vec2i(0, 0)
     tile_counts[i] = wp.int64(0)
     p = world_to_camera(viewmat, mean)
@@ -284,7 +349,7 @@ def project_gaussians(
     cov2d = projected_covariance(p, camera_covariance(viewmat, quat, scale), K, width, height)
     if not (wp.isfinite(cov2d[0, 0]) and wp.isfinite(cov2d[0, 1]) and wp.isfinite(cov2d[1, 1])):
         if wp.isfinite(scale[0]) and wp.isfinite(scale[1]) and wp.isfinite(scale[2]):
-            wp.atomic_add(flags, HUGE_COVARIANCE, 1)
+            wp.atomic_add(flags, HUGE_COVARIANCE, wp.int64(1))
         return
     det_orig = wp.determinant(cov2d)
     blurred = cov2d + wp.identity(n=2, dtype=type(opacity)) * eps2d
@@ -328,6 +393,7 @@ def project_gaussians_differentiable(
     coeffs: wp.array2d(dtype=Any),
     viewmats: wp.array(dtype=Any),
     Ks: wp.array(dtype=Any),
+    origin: wp.array(dtype=Any),
     radii: wp.array(dtype=wp.vec2i),
     sh_degree: int,
     width: int,
@@ -345,7 +411,7 @@ def project_gaussians_differentiable(
     i = b * means.shape[0] + n
     if radii[i][0] == 0 and radii[i][1] == 0:
         return
-    mean = means[n]
+    mean = means[n] - wp.vector(origin[0], origin[1], origin[2])
     opacity = opacities[n]
     viewmat = viewmats[b]
     K = Ks[b]

@@ -109,6 +109,65 @@ def test_gradcheck_background():
     assert torch.autograd.gradcheck(render, (background,), fast_mode=True)
 
 
+def opaque_scene(n=20, dtype=torch.float64, device="cpu", seed=3):
+    """Nearly opaque, enlarged Gaussians: many pixels reach a transmittance of 1e-2 (the early stop matters)."""
+    scene = make_scene(n, 16, 16, seed=seed, dtype=dtype, device=device)
+    scene[3][:] = 0.97
+    scene[2][:] *= 2
+    return scene
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("dtype, image_atol, grad_rtol", [(torch.float64, 1e-9, 1e-7), (torch.float32, 1e-5, 1e-4)])
+def test_early_stop_threshold_matches_reference(device, dtype, image_atol, grad_rtol):
+    scene = opaque_scene(dtype=dtype, device=device)
+    stopped = rasterize(*scene, 16, 16, min_transmittance=1e-2)[0]
+    assert (stopped - rasterize(*scene, 16, 16)[0]).abs().max() > 1e-2  # the threshold changes the image
+    background = torch.rand(1, 3, dtype=dtype, device=device)
+    result = render_both(scene, 16, 16, background=background, mode="antialiased", min_transmittance=1e-2)
+    assert_matches_reference(*result, image_atol=image_atol, grad_rtol=grad_rtol)
+
+
+def test_no_early_stop_matches_reference():
+    result = render_both(opaque_scene(), 16, 16, min_transmittance=0.0)
+    assert_matches_reference(*result, image_atol=1e-9, grad_rtol=1e-7)
+
+
+@pytest.mark.parametrize("argument", ["means", "opacities", "colors"])
+def test_gradcheck_float64_at_early_stop_threshold(argument):
+    scene = opaque_scene()
+    index = ("means", "quats", "scales", "opacities", "colors").index(argument)
+
+    def render(x):
+        inputs = list(scene)
+        inputs[index] = x
+        rgb, depth, alpha, _ = rasterize(*inputs, 16, 16, min_transmittance=1e-2)
+        return torch.cat([rgb, depth, alpha], dim=-1)
+
+    x = scene[index].clone().requires_grad_()
+    assert torch.autograd.gradcheck(render, (x,), eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
+
+
+@pytest.mark.parametrize("value", [-1e-3, 1.0, math.nan, "0.1", True])
+def test_bad_early_stop_threshold_raises_input_error(value):
+    with pytest.raises(InputError, match="min_transmittance"):
+        rasterize(*make_scene(4, 8, 8), 8, 8, min_transmittance=value)
+
+
+@pytest.mark.parametrize("outputs", [("rgb",), ("depth",), ("alpha",), ("rgb", "alpha")])
+def test_gradients_of_some_outputs_match_reference(outputs):
+    """Outputs without a gradient reach the backward as None (no zero-filled gradients are made)."""
+    scene = make_scene(30, 19, 13, seed=2)
+    leaves = [t.clone().requires_grad_() for t in scene[:5]]
+    picked = [("rgb", "depth", "alpha").index(name) for name in outputs]
+    ours = rasterize(*leaves, *scene[5:], 19, 13)
+    ref = rasterize_dense(*leaves, *scene[5:], 19, 13)
+    grads_ours = torch.autograd.grad(sum(ours[i].sum() for i in picked), leaves)
+    grads_ref = torch.autograd.grad(sum(ref[i].sum() for i in picked), leaves, allow_unused=True)
+    for a, b, leaf in zip(grads_ours, grads_ref, leaves):
+        assert relative_error(a, torch.zeros_like(leaf) if b is None else b) <= 1e-7
+
+
 @pytest.fixture
 def gsplat_impl():
     """gsplat 1.5.3's pure-torch functions (installed by the dev extra; skipped only where it is absent)."""
@@ -147,6 +206,19 @@ def test_projection_matches_gsplat(mode, gsplat_impl):
         sh = gsplat_impl._spherical_harmonics(degree, means[None] - centers[:, None], colors[None].expand(2, -1, -1, -1))
         expected = torch.clamp_min(sh + 0.5, 0.0)
         torch.testing.assert_close(ours.colors[visible], expected[visible], rtol=1e-10, atol=1e-12)
+
+
+def test_gradcheck_projection_stage_float64():
+    scene = make_scene(10, 16, 16, cameras=2, sh_degree=1, seed=6)
+    leaves = tuple(t.clone().requires_grad_() for t in scene[:5])
+
+    def project(*params):
+        proj = project_gaussians(*params, *scene[5:], 16, 16, mode="antialiased")
+        parts = [proj.means2d, proj.conics, proj.opacities[..., None], proj.colors, proj.depths[..., None]]
+        return torch.cat(parts, dim=-1)
+
+    assert (project_gaussians(*scene, 16, 16).radii > 0).all(-1).sum() > 10
+    assert torch.autograd.gradcheck(project, leaves, eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
 
 
 def test_zero_gaussians_render_the_background():

@@ -1,15 +1,20 @@
 """Differentiable 3D Gaussian splat rasterization on Warp kernels (CPU and CUDA), close to gsplat's API.
 
-Pipeline (one kernel family per stage, see ``codecsplat_warp.kernels.raster_*``):
+Pipeline (one kernel family per stage, see ``codecsplat_warp.kernels.raster_*``), all inside one autograd
+Function so that a call costs few host operations:
 
-1. EWA projection, one thread per (camera, Gaussian): a packed row ``[x, y, conic(3), opacity, rgb, depth]``,
+1. Camera preparation on one thread: validation flags of the cameras and background, the cameras cast to the
+   Gaussians' dtype and made camera-relative (float32: the world is translated by the mean camera centre,
+   composed in float64, so that a scene far from the world origin keeps its precision).
+2. EWA projection, one thread per (camera, Gaussian): a packed row ``[x, y, conic(3), opacity, rgb, depth]``,
    pixel radii, tiles touched and input-validation flags.
-2. Prefix sum of the tile counts; ONE host sync reads the intersection count and the flags, then the
-   memory budget is checked before anything is allocated for sorting.
-3. One 64-bit key ``[camera | tile | depth bits]`` per intersection, ``wp.utils.radix_sort_pairs`` on the
+3. Prefix sum of the tile counts; ONE host sync reads the intersection count and the flags (adjacent in one
+   int64 buffer), then the memory budget is checked before anything is allocated for sorting.
+4. One 64-bit key ``[camera | tile | depth bits]`` per intersection, ``wp.utils.radix_sort_pairs`` on the
    used bits only, per-tile ranges from the sorted keys.
-4. Front-to-back compositing per 16x16 tile (rows staged in shared memory), and a hand-written back-to-front
-   backward. Projection gradients come from an adjoint launch of its straight-line twin kernel.
+5. Front-to-back compositing per tile (rows staged in shared memory; expected depth normalised in the
+   kernel), and a hand-written back-to-front backward. Projection gradients come from an adjoint launch of
+   its straight-line twin kernel.
 
 Gradients flow to ``means``, ``quats``, ``scales``, ``opacities``, ``colors`` (RGB or SH) and
 ``background``. ``viewmats`` and ``Ks`` are **not** differentiated (their gradient is None).
@@ -17,8 +22,11 @@ Gradients flow to ``means``, ``quats``, ``scales``, ``opacities``, ``colors`` (R
 
 from __future__ import annotations
 
+import functools
 import math
+import numbers
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 import warp as wp
@@ -27,7 +35,6 @@ from ..device import (
     FLOAT_DTYPES, check_finite, check_tensor, common_device, launch, matrices, to_warp, validation_enabled, vectors,
     warp_dtype, warp_scope,
 )  # fmt: skip
-from ..cameras import rigid_inverse
 from ..errors import InputError, RasterMemoryError
 from ..kernels import raster_composite, raster_project, raster_tiles
 
@@ -42,8 +49,8 @@ BYTES_PER_INTERSECTION = 2 * (8 + 4)
 LOW_PASS_PX2 = 0.3
 """Screen-space low-pass blur added to the 2D covariance diagonal, in px^2 (gsplat's eps2d)."""
 
-MIN_ALPHA_FOR_DEPTH = 1e-10
-"""Expected depth is ``sum w z / max(alpha, MIN_ALPHA_FOR_DEPTH)`` (gsplat's RGB+ED normalisation)."""
+DEFAULT_MIN_TRANSMITTANCE = 1e-4
+"""A pixel stops compositing before the row that would take its transmittance to this or below (gsplat's)."""
 
 MODES = ("classic", "antialiased")
 
@@ -55,7 +62,10 @@ _ARGUMENT_OF_FLAG = {
     raster_project.BAD_COLORS: "colors",
     raster_project.BAD_VIEWMATS: "viewmats",
     raster_project.BAD_KS: "Ks",
+    raster_project.BAD_BACKGROUND: "background",
 }
+_CAMERA_FLAGS = (raster_project.BAD_VIEWMATS, raster_project.BAD_KS, raster_project.BAD_BACKGROUND)
+"""Flags that count non-finite values (the others count Gaussians)."""
 
 
 @dataclass(frozen=True)
@@ -64,15 +74,19 @@ class RasterMeta:
 
     Attributes:
         radii: ``[B, N, 2]`` int32 pixel half-extents (x, y) of each Gaussian's box per camera; 0 = culled.
-        visible_counts: ``[B]`` int64 number of Gaussians with non-zero radii per camera.
         intersection_count: number of (camera, Gaussian, tile) intersections that were sorted.
         tile_size: tile edge in pixels.
+        visible_counts: ``[B]`` int64 number of Gaussians with non-zero radii per camera (computed from
+            ``radii`` on first access).
     """
 
     radii: torch.Tensor
-    visible_counts: torch.Tensor
     intersection_count: int
     tile_size: int
+
+    @functools.cached_property
+    def visible_counts(self) -> torch.Tensor:
+        return (self.radii > 0).any(dim=-1).sum(dim=1)
 
 
 @dataclass(frozen=True)
@@ -85,6 +99,7 @@ class _Settings:
     antialiased: bool
     render_depth: bool
     tile_size: int
+    min_transmittance: float
 
     @property
     def tiles_x(self) -> int:
@@ -95,96 +110,148 @@ class _Settings:
         return math.ceil(self.height / self.tile_size)
 
 
-def _projection_inputs(means, quats, scales, opacities, coeffs, viewmats, Ks) -> list:
+class _Cameras(NamedTuple):
+    """Cameras as the projection kernels take them, in the Gaussians' dtype (views of one buffer).
+
+    Attributes:
+        viewmats: ``[B,4,4]`` camera-relative world-to-camera; Ks: ``[B,3,3]`` pixels; origin: ``[3]`` the world
+        translation (world units; 0 for float64 Gaussians).
+    """
+
+    viewmats: torch.Tensor
+    Ks: torch.Tensor
+    origin: torch.Tensor
+
+
+def _prepare_cameras(viewmats, Ks, background, dtype: torch.dtype, flags: torch.Tensor, wdev) -> _Cameras:
+    """Launch :func:`~codecsplat_warp.kernels.raster_project.prepare_cameras`; it also initialises ``flags``.
+
+    Args:
+        viewmats: ``[B,4,4]``, Ks: ``[B,3,3]`` as given (float32 or float64); background: ``[B,3]`` or ``[0,3]``.
+        dtype: the Gaussians' dtype; float32 Gaussians are made camera-relative.
+        flags: ``[NUM_FLAGS]`` int64 validation counters.
+    """
+    B = viewmats.shape[0]
+    buffer = torch.empty(B * 25 + 3, dtype=dtype, device=viewmats.device)
+    cameras = _Cameras(buffer[: 16 * B].view(B, 4, 4), buffer[16 * B : 25 * B].view(B, 3, 3), buffer[25 * B :])
+    launch(
+        raster_project.prepare_cameras,
+        1,
+        [viewmats, Ks, background, int(dtype != torch.float64), cameras.viewmats, cameras.Ks, cameras.origin, flags],
+        wdev,
+    )
+    return cameras
+
+
+def _projection_inputs(means, quats, scales, opacities, coeffs, cameras: _Cameras) -> list:
     """The 3D-parameter and camera arguments of both projection kernels, in :func:`launch` form."""
-    return [vectors(means), vectors(quats), vectors(scales), opacities, vectors(coeffs), matrices(viewmats),
-            matrices(Ks)]  # fmt: skip
+    return [vectors(means), vectors(quats), vectors(scales), opacities, vectors(coeffs), matrices(cameras.viewmats),
+            matrices(cameras.Ks), cameras.origin]  # fmt: skip
+
+
+def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, settings: _Settings,
+             tile_counts: torch.Tensor, flags: torch.Tensor, wdev) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """Projected rows ``[B*N, 10]`` and radii ``[B*N, 2]`` int32; fills ``tile_counts`` ``[B*N]`` and ``flags``."""
+    B, N = cameras.viewmats.shape[0], means.shape[0]
+    scalar = warp_dtype(means.dtype)
+    splats = torch.empty(B * N, raster_project.ROW_WIDTH, dtype=means.dtype, device=means.device)
+    radii = torch.empty(B * N, 2, dtype=torch.int32, device=means.device)
+    launch(
+        raster_project.project_gaussians,
+        (B, N),
+        [
+            *_projection_inputs(means, quats, scales, opacities, coeffs, cameras),
+            settings.sh_degree,
+            settings.width,
+            settings.height,
+            scalar(settings.near),
+            scalar(settings.far),
+            scalar(LOW_PASS_PX2),
+            int(settings.antialiased),
+            settings.tile_size,
+            settings.tiles_x,
+            settings.tiles_y,
+            splats,
+            vectors(radii),
+            tile_counts,
+            flags,
+        ],
+        wdev,
+    )
+    return splats, radii
+
+
+def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, cameras: _Cameras, radii,
+                      settings: _Settings, wdev) -> list[torch.Tensor]:  # fmt: skip
+    """Gradients of means ``[N,3]``, quats ``[N,4]``, scales ``[N,3]``, opacities ``[N]`` and coeffs ``[N,K,3]``
+    from the gradient of the projected rows ``[B*N, 10]`` (views of one zero-initialised buffer)."""
+    B, (N, K) = cameras.viewmats.shape[0], coeffs.shape[:2]
+    shapes = [(N, 3), (N, 4), (N, 3), (N,), (N, K, 3)]
+    buffer = torch.zeros(N * (11 + 3 * K), dtype=means.dtype, device=means.device)
+    grads = [part.view(shape) for part, shape in zip(buffer.split([math.prod(s) for s in shapes]), shapes)]
+    scalar = warp_dtype(means.dtype)
+    adj_args = [
+        *(vectors(g) if g.dim() > 1 else g for g in grads),
+        None,
+        None,
+        None,
+        None,
+        0,
+        0,
+        0,
+        scalar(0.0),
+        0,
+        grad_rows,
+    ]
+    launch(
+        raster_project.project_gaussians_differentiable,
+        (B, N),
+        [
+            *_projection_inputs(means, quats, scales, opacities, coeffs, cameras),
+            vectors(radii),
+            settings.sh_degree,
+            settings.width,
+            settings.height,
+            scalar(LOW_PASS_PX2),
+            int(settings.antialiased),
+            torch.empty_like(grad_rows),
+        ],
+        wdev,
+        adj_args=adj_args,
+    )
+    return grads
 
 
 class _ProjectGaussians(torch.autograd.Function):
-    """(means, quats, scales, opacities, coeffs) -> packed rows [B,N,10]; also radii, tile counts, flags."""
+    """The projection stage alone: (means, quats, scales, opacities, coeffs) -> rows [B,N,10]; radii, flags."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, coeffs, viewmats, Ks, settings: _Settings):
         B, N = viewmats.shape[0], means.shape[0]
-        device = means.device
-        scalar = warp_dtype(means.dtype)
-        splats = torch.zeros(B * N, raster_project.ROW_WIDTH, dtype=means.dtype, device=device)
-        radii = torch.empty(B * N, 2, dtype=torch.int32, device=device)
-        tile_counts = torch.empty(B * N, dtype=torch.int64, device=device)
-        flags = torch.zeros(raster_project.NUM_FLAGS, dtype=torch.int32, device=device)
-        with warp_scope(device) as wdev:
-            launch(
-                raster_project.project_gaussians,
-                (B, N),
-                [
-                    *_projection_inputs(means, quats, scales, opacities, coeffs, viewmats, Ks),
-                    settings.sh_degree,
-                    settings.width,
-                    settings.height,
-                    scalar(settings.near),
-                    scalar(settings.far),
-                    scalar(LOW_PASS_PX2),
-                    int(settings.antialiased),
-                    settings.tile_size,
-                    settings.tiles_x,
-                    settings.tiles_y,
-                    splats,
-                    vectors(radii),
-                    tile_counts,
-                    flags,
-                ],
-                wdev,
-            )
+        ints = torch.empty(B * N + raster_project.NUM_FLAGS, dtype=torch.int64, device=means.device)
+        tile_counts, flags = ints[: B * N], ints[B * N :]
+        with warp_scope(means.device) as wdev:
+            cameras = _prepare_cameras(viewmats, Ks, _absent(means, 3), means.dtype, flags, wdev)
+            splats, radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, tile_counts, flags,
+                                     wdev)  # fmt: skip
         ctx.settings = settings
-        ctx.save_for_backward(means, quats, scales, opacities, coeffs, viewmats, Ks, radii)
-        ctx.mark_non_differentiable(radii, tile_counts, flags)
-        return splats.view(B, N, raster_project.ROW_WIDTH), radii.view(B, N, 2), tile_counts, flags
+        ctx.save_for_backward(means, quats, scales, opacities, coeffs, *cameras, radii)
+        ctx.mark_non_differentiable(radii, flags)
+        return splats.view(B, N, raster_project.ROW_WIDTH), radii.view(B, N, 2), flags
 
     @staticmethod
-    def backward(ctx, grad_splats, _grad_radii, _grad_counts, _grad_flags):
-        means, quats, scales, opacities, coeffs, viewmats, Ks, radii = ctx.saved_tensors
-        settings: _Settings = ctx.settings
-        B, N = viewmats.shape[0], means.shape[0]
-        grads = [torch.zeros_like(t) for t in (means, quats, scales, opacities, coeffs)]
-        if grad_splats is None or N == 0:
-            return (*grads, None, None, None)
-        scalar = warp_dtype(means.dtype)
-        scratch = torch.zeros(B * N, raster_project.ROW_WIDTH, dtype=means.dtype, device=means.device)
-        adj_args = [
-            vectors(grads[0]),
-            vectors(grads[1]),
-            vectors(grads[2]),
-            grads[3],
-            vectors(grads[4]),
-            None,
-            None,
-            None,
-            0,
-            0,
-            0,
-            scalar(0.0),
-            0,
-            grad_splats.reshape(B * N, raster_project.ROW_WIDTH).contiguous(),
-        ]
+    def backward(ctx, grad_splats, _grad_radii, _grad_flags):
+        means, quats, scales, opacities, coeffs, viewmats, Ks, origin, radii = ctx.saved_tensors
+        grad_rows = grad_splats.reshape(-1, raster_project.ROW_WIDTH).contiguous()
         with warp_scope(means.device) as wdev:
-            launch(
-                raster_project.project_gaussians_differentiable,
-                (B, N),
-                [
-                    *_projection_inputs(means, quats, scales, opacities, coeffs, viewmats, Ks),
-                    vectors(radii.view(B * N, 2)),
-                    settings.sh_degree,
-                    settings.width,
-                    settings.height,
-                    scalar(LOW_PASS_PX2),
-                    int(settings.antialiased),
-                    scratch,
-                ],
-                wdev,
-                adj_args=adj_args,
-            )
+            grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs,
+                                      _Cameras(viewmats, Ks, origin), radii, ctx.settings, wdev)  # fmt: skip
         return (*grads, None, None, None)
+
+
+def _absent(like: torch.Tensor, *inner: int) -> torch.Tensor:
+    """A zero-length array ``[0, *inner]``: how the kernels are told that an optional input or output is absent."""
+    return like.new_empty(0, *inner)
 
 
 CPU_BATCH = 16
@@ -199,87 +266,94 @@ def _composite_launch_shape(device: torch.device, tile_size: int, num_tiles: int
     return num_tiles * (pixels // lanes), lanes, pixels // lanes, raster_composite.composite_kernels(batch)
 
 
-class _CompositeSplats(torch.autograd.Function):
-    """Packed rows [B,N,10] (+ background) -> colour [B,H,W,3], accumulated depth [B,H,W,1], alpha [B,H,W,1]."""
+def _composite_common(ranges, sorted_ids, rows, background, settings: _Settings,
+                      device) -> tuple[list, int, int, tuple]:  # fmt: skip
+    """(leading arguments shared by both compositing kernels, blocks, block_dim, kernels)."""
+    blocks, block_dim, blocks_per_tile, kernels = _composite_launch_shape(device, settings.tile_size, len(ranges))
+    args = [ranges, sorted_ids, rows, background, settings.width, settings.height, settings.tile_size,
+            settings.tiles_x, settings.tiles_x * settings.tiles_y, blocks_per_tile]  # fmt: skip
+    return args, blocks, block_dim, kernels
+
+
+class _Rasterize(torch.autograd.Function):
+    """(means, quats, scales, opacities, colors, background) -> rgb [B,H,W,3], expected depth [B,H,W,1] or None,
+    alpha [B,H,W,1], radii [B,N,2] (not differentiable) and the intersection count (an int)."""
 
     @staticmethod
-    def forward(ctx, splats, background, ranges, sorted_ids, settings: _Settings):
-        B = ranges.shape[0] // (settings.tiles_x * settings.tiles_y)
-        H, W = settings.height, settings.width
-        device, dtype = splats.device, splats.dtype
-        color = torch.empty(B * H * W, 3, dtype=dtype, device=device)
-        depth = torch.zeros(B * H * W, dtype=dtype, device=device)
-        alpha = torch.empty(B * H * W, dtype=dtype, device=device)
-        transmittance = torch.empty(B * H * W, dtype=dtype, device=device)
-        last = torch.empty(B * H * W, dtype=torch.int32, device=device)
-        blocks, block_dim, blocks_per_tile, kernels = _composite_launch_shape(device, settings.tile_size, len(ranges))
-        rows = splats.reshape(-1, raster_project.ROW_WIDTH)
+    def forward(ctx, means, quats, scales, opacities, colors, background, viewmats, Ks, settings: _Settings,
+                max_intersection_bytes: int):  # fmt: skip
+        B, N = viewmats.shape[0], means.shape[0]
+        device, dtype = means.device, means.dtype
+        coeffs = colors if colors.dim() == 3 else colors.unsqueeze(1)
+        background = _absent(means, 3) if background is None else background
+        ints = torch.empty(2 * B * N + raster_project.NUM_FLAGS, dtype=torch.int64, device=device)
+        tile_counts, offsets, flags = ints[: B * N], ints[B * N : 2 * B * N], ints[2 * B * N :]
         with warp_scope(device) as wdev:
-            launch(
-                kernels[0],
-                (blocks,),
-                [
-                    *_composite_common(ranges, sorted_ids, rows, background, settings, blocks_per_tile),
-                    color,
-                    depth,
-                    alpha,
-                    transmittance,
-                    last,
-                ],
-                wdev,
-                block_dim=block_dim,
-            )
+            cameras = _prepare_cameras(viewmats, Ks, background, dtype, flags, wdev)
+            splats, radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, tile_counts, flags,
+                                     wdev)  # fmt: skip
+            torch.cumsum(tile_counts, 0, out=offsets)
+            count, flag_values = _read_count_and_flags(ints, B * N)
+            if validation_enabled():
+                _raise_on_flags(flag_values)
+            _check_budget(count, max_intersection_bytes)
+            ranges, sorted_ids = _bin_intersections(splats, radii, tile_counts, offsets, count, B, settings, wdev)
+            color, depth, alpha, state, last = _composite(splats, background, ranges, sorted_ids, B, settings, wdev)
         ctx.settings = settings
-        ctx.has_background = background is not None
-        ctx.save_for_backward(rows, background, ranges, sorted_ids, transmittance, last)
-        return color.view(B, H, W, 3), depth.view(B, H, W, 1), alpha.view(B, H, W, 1)
+        ctx.colors_shape = colors.shape
+        ctx.save_for_backward(means, quats, scales, opacities, coeffs, background, *cameras, radii, splats, ranges,
+                              sorted_ids, state, last)  # fmt: skip
+        ctx.mark_non_differentiable(radii)
+        ctx.set_materialize_grads(False)
+        H, W = settings.height, settings.width
+        depth = depth.view(B, H, W, 1) if settings.render_depth else None
+        return color.view(B, H, W, 3), depth, alpha.view(B, H, W, 1), radii.view(B, N, 2), count
 
     @staticmethod
-    def backward(ctx, grad_color, grad_depth, grad_alpha):
-        rows, background, ranges, sorted_ids, transmittance, last = ctx.saved_tensors
+    def backward(ctx, grad_color, grad_depth, grad_alpha, _grad_radii, _grad_count):
+        (means, quats, scales, opacities, coeffs, background, viewmats, Ks, origin, radii, splats, ranges, sorted_ids,
+         state, last) = ctx.saved_tensors  # fmt: skip
         settings: _Settings = ctx.settings
-        B, H, W = grad_color.shape[0], settings.height, settings.width
-        device = rows.device
-        grad_rows = torch.zeros_like(rows)
-        blocks, block_dim, blocks_per_tile, kernels = _composite_launch_shape(device, settings.tile_size, len(ranges))
-        with warp_scope(device) as wdev:
-            launch(
-                kernels[1],
-                (blocks,),
-                [
-                    *_composite_common(ranges, sorted_ids, rows, background, settings, blocks_per_tile),
-                    transmittance,
-                    last,
-                    grad_color.reshape(B * H * W, 3).contiguous(),
-                    grad_depth.reshape(B * H * W).contiguous(),
-                    grad_alpha.reshape(B * H * W).contiguous(),
-                    grad_rows,
-                ],
-                wdev,
-                block_dim=block_dim,
-            )
+        grads = [None] * 5
+        if any(ctx.needs_input_grad[:5]):
+            output_grads = [_flat_gradient(g, splats, inner) for g, inner in
+                            ((grad_color, (3,)), (grad_depth, ()), (grad_alpha, ()))]  # fmt: skip
+            grad_rows = torch.zeros_like(splats)
+            with warp_scope(means.device) as wdev:
+                common, blocks, block_dim, kernels = _composite_common(ranges, sorted_ids, splats, background,
+                                                                       settings, means.device)  # fmt: skip
+                launch(kernels[1], (blocks,), [*common, state, last, *output_grads, grad_rows], wdev,
+                       block_dim=block_dim)  # fmt: skip
+                grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs,
+                                          _Cameras(viewmats, Ks, origin), radii, settings, wdev)  # fmt: skip
+            grads[4] = grads[4].view(ctx.colors_shape)
         grad_background = None
-        if ctx.has_background and ctx.needs_input_grad[1]:
-            grad_background = (grad_color * transmittance.view(B, H, W, 1)).sum(dim=(1, 2))
-        return grad_rows.view(B, -1, raster_project.ROW_WIDTH), grad_background, None, None, None
+        if ctx.needs_input_grad[5] and grad_color is not None:
+            B, H, W = grad_color.shape[:3]
+            grad_background = (grad_color * state[:, :1].view(B, H, W, 1)).sum(dim=(1, 2))
+        return (*grads, grad_background, None, None, None, None)
 
 
-def _composite_common(ranges, sorted_ids, rows, background, settings: _Settings, blocks_per_tile: int) -> list:
-    dummy_background = background if background is not None else rows.new_zeros(1, 3)
-    return [
-        ranges,
-        sorted_ids,
-        rows,
-        dummy_background,
-        int(background is not None),
-        int(settings.render_depth),
-        settings.width,
-        settings.height,
-        settings.tile_size,
-        settings.tiles_x,
-        settings.tiles_x * settings.tiles_y,
-        blocks_per_tile,
-    ]
+def _composite(splats, background, ranges, sorted_ids, num_cameras: int, settings: _Settings, wdev):
+    """Launch the forward compositing kernel. Returns flat ``color [P,3]``, expected ``depth [P]`` (``[0]`` without
+    depth), ``alpha [P]``, ``state [P,2]`` (final T, accumulated depth) and ``last [P]`` int32 for ``P = B*H*W``."""
+    P, dtype, device = num_cameras * settings.height * settings.width, splats.dtype, splats.device
+    color = torch.empty(P, 3, dtype=dtype, device=device)
+    depth = torch.empty(P if settings.render_depth else 0, dtype=dtype, device=device)
+    alpha = torch.empty(P, dtype=dtype, device=device)
+    state = torch.empty(P, 2, dtype=dtype, device=device)
+    last = torch.empty(P, dtype=torch.int32, device=device)
+    common, blocks, block_dim, kernels = _composite_common(ranges, sorted_ids, splats, background, settings, device)
+    threshold = warp_dtype(dtype)(settings.min_transmittance)
+    launch(kernels[0], (blocks,), [*common, threshold, color, depth, alpha, state, last], wdev, block_dim=block_dim)
+    return color, depth, alpha, state, last
+
+
+def _flat_gradient(grad: torch.Tensor | None, like: torch.Tensor, inner: tuple[int, ...]) -> torch.Tensor:
+    """The gradient of a ``[B,H,W,*]`` output as a contiguous ``[B*H*W, *inner]`` array, or a zero-length one."""
+    if grad is None:
+        return _absent(like, *inner)
+    return grad.reshape(-1, *inner).contiguous()
 
 
 def rasterize(
@@ -300,6 +374,7 @@ def rasterize(
     render_depth: bool = True,
     tile_size: int = 16,
     max_intersection_bytes: int = DEFAULT_MAX_INTERSECTION_BYTES,
+    min_transmittance: float = DEFAULT_MIN_TRANSMITTANCE,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, RasterMeta]:
     """Render N 3D Gaussians into B pinhole cameras (differentiable, gsplat-compatible conventions).
 
@@ -320,40 +395,34 @@ def rasterize(
         render_depth: also render expected depth ``sum w z / max(alpha, 1e-10)``; False skips that work.
         tile_size: tile edge in pixels (1..32; 16 is the tuned default).
         max_intersection_bytes: budget for the intersection sort buffers (24 bytes per intersection).
+        min_transmittance: early stop, in [0, 1): a pixel stops compositing before the first Gaussian that
+            would take its transmittance ``T`` to this value or below (gsplat's 1e-4 by default). Larger
+            values skip more of the hidden Gaussians (faster, a larger error against an exact render);
+            0 composites every Gaussian until ``T`` underflows, where the backward, which rebuilds ``T`` by
+            division from the final ``T``, loses accuracy behind nearly opaque stacks.
 
     Returns:
         ``(rgb [B,H,W,3], depth [B,H,W,1] or None, alpha [B,H,W,1], meta)`` in the dtype of ``means``
         (float32 or float64); see :class:`RasterMeta`.
 
     Raises:
-        InputError: bad shape, dtype, mode, degree or size; NaN/Inf in any input; zero quaternion.
+        InputError: bad shape, dtype, mode, degree, size or threshold; NaN/Inf in any input; zero quaternion.
         DeviceMismatchError: inputs on different devices.
         RasterMemoryError: the intersections would need more than ``max_intersection_bytes``.
     """
-    means, quats, scales, opacities, coeffs, viewmats, Ks, background, settings = _prepare(
+    means, quats, scales, opacities, colors, viewmats, Ks, background, settings = _prepare(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, far, background, mode,
-        sh_degree, render_depth, tile_size,
+        sh_degree, render_depth, tile_size, min_transmittance,
     )  # fmt: skip
-    B, N = viewmats.shape[0], means.shape[0]
-    if N == 0:
+    if means.shape[0] == 0:
         for name, tensor in (("viewmats", viewmats), ("Ks", Ks), ("background", background)):
             if tensor is not None:
                 check_finite(name, tensor)
         return _empty_render(means, viewmats, background, settings)
-
-    splats, radii, tile_counts, flags = _ProjectGaussians.apply(
-        means, quats, scales, opacities, coeffs, viewmats, Ks, settings
+    color, depth, alpha, radii, count = _Rasterize.apply(
+        means, quats, scales, opacities, colors, background, viewmats, Ks, settings, max_intersection_bytes
     )
-    offsets = _inclusive_scan(tile_counts, means.device)
-    count, flag_values = _read_count_and_flags(offsets, flags, background)
-    if validation_enabled():
-        _raise_on_flags(flag_values)
-    _check_budget(count, max_intersection_bytes)
-    ranges, sorted_ids = _bin_intersections(splats, radii, tile_counts, offsets, count, B, settings)
-    color, depth_sum, alpha = _CompositeSplats.apply(splats, background, ranges, sorted_ids, settings)
-    depth = depth_sum / alpha.clamp_min(MIN_ALPHA_FOR_DEPTH) if settings.render_depth else None
-    visible = (radii > 0).any(dim=-1).sum(dim=1)
-    return color, depth, alpha, RasterMeta(radii, visible, count, settings.tile_size)
+    return color, depth, alpha, RasterMeta(radii, count, settings.tile_size)
 
 
 @dataclass(frozen=True)
@@ -390,13 +459,14 @@ def project_gaussians(
     sh_degree: int | None = None,
 ) -> ProjectedGaussians:
     """The projection stage of :func:`rasterize` alone (same arguments, same checks and errors)."""
-    means, quats, scales, opacities, coeffs, viewmats, Ks, _, settings = _prepare(
+    means, quats, scales, opacities, colors, viewmats, Ks, _, settings = _prepare(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, far, None, mode,
-        sh_degree, True, 16,
+        sh_degree, True, 16, DEFAULT_MIN_TRANSMITTANCE,
     )  # fmt: skip
-    splats, radii, _, flags = _ProjectGaussians.apply(means, quats, scales, opacities, coeffs, viewmats, Ks, settings)
+    coeffs = colors if colors.dim() == 3 else colors.unsqueeze(1)
+    splats, radii, flags = _ProjectGaussians.apply(means, quats, scales, opacities, coeffs, viewmats, Ks, settings)
     if validation_enabled() and means.shape[0]:
-        _raise_on_flags([int(v) for v in flags.tolist()])
+        _raise_on_flags(flags.tolist())
     return ProjectedGaussians(
         means2d=splats[..., 0:2], conics=splats[..., 2:5], opacities=splats[..., 5], colors=splats[..., 6:9],
         depths=splats[..., 9], radii=radii,
@@ -404,9 +474,9 @@ def project_gaussians(
 
 
 def _prepare(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, far, background, mode,
-             sh_degree, render_depth, tile_size):  # fmt: skip
-    """Check every argument; return contiguous tensors (cameras in the dtype of ``means``), coeffs
-    ``[N,K,3]`` and the settings."""
+             sh_degree, render_depth, tile_size, min_transmittance):  # fmt: skip
+    """Check every argument; return contiguous tensors (half-precision Gaussians as float32; cameras detached, in
+    their float dtype) and the settings."""
     dims: dict[str, int] = {}
     means = check_tensor("means", means, ("N", 3), (*FLOAT_DTYPES, *_LOW_PRECISION), dims=dims)
     given = means.dtype
@@ -423,35 +493,18 @@ def _prepare(means, quats, scales, opacities, colors, viewmats, Ks, width, heigh
     if given in _LOW_PRECISION:  # half inputs (autocast) are computed in float32, like the geometry ops
         means, quats, scales, opacities, colors = (t.float() for t in (means, quats, scales, opacities, colors))
         background = None if background is None else background.float()
-    dtype = means.dtype
     common_device(
         means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmats=viewmats, Ks=Ks,
         background=background,
     )  # fmt: skip
-    settings = _make_settings(colors, width, height, near, far, mode, sh_degree, render_depth, tile_size)
-    means, viewmats = _camera_relative(means, viewmats.detach())
-    viewmats = viewmats.to(dtype).contiguous()
-    Ks = Ks.detach().to(dtype).contiguous()
-    coeffs = colors if colors.dim() == 3 else colors.unsqueeze(1)
+    settings = _make_settings(colors, width, height, near, far, mode, sh_degree, render_depth, tile_size,
+                              min_transmittance)  # fmt: skip
     _check_key_bits(viewmats.shape[0], settings)
-    return means, quats, scales, opacities, coeffs, viewmats, Ks, background, settings
+    return means, quats, scales, opacities, colors, viewmats.detach(), Ks.detach(), background, settings
 
 
-def _camera_relative(means: torch.Tensor, viewmats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Means and viewmats re-expressed about the mean camera centre ``o`` (rounded to the means' dtype), so that
-    float32 positions are relative to the cameras: ``R x + t`` no longer cancels for a scene far from the world
-    origin. ``means - o`` is one elementwise op (its gradient is the identity); ``viewmats @ T(o)`` is composed in
-    float64. A pure translation of the world: images and gradients are unchanged."""
-    if means.dtype == torch.float64 or means.shape[0] == 0:
-        return means, viewmats
-    with torch.autocast(means.device.type, enabled=False):
-        origin = rigid_inverse(viewmats.to(torch.float64))[:, :3, 3].mean(dim=0).to(means.dtype)
-        shift = torch.eye(4, dtype=torch.float64, device=viewmats.device)
-        shift[:3, 3] = origin.to(torch.float64)
-        return means - origin, viewmats.to(torch.float64) @ shift
-
-
-def _make_settings(colors, width, height, near, far, mode, sh_degree, render_depth, tile_size) -> _Settings:
+def _make_settings(colors, width, height, near, far, mode, sh_degree, render_depth, tile_size,
+                   min_transmittance) -> _Settings:  # fmt: skip
     for name, value in (("width", width), ("height", height)):
         if isinstance(value, bool) or int(value) != value or value < 1:
             raise InputError(f"{name} must be a positive integer, got {value!r}")
@@ -463,7 +516,14 @@ def _make_settings(colors, width, height, near, far, mode, sh_degree, render_dep
         raise InputError(f"near and far must satisfy 0 < near < far, got near={near}, far={far}")
     degree = _sh_degree(colors, sh_degree)
     return _Settings(int(width), int(height), float(near), float(far), degree, mode == "antialiased",
-                     bool(render_depth), int(tile_size))  # fmt: skip
+                     bool(render_depth), int(tile_size), _transmittance_threshold(min_transmittance))  # fmt: skip
+
+
+def _transmittance_threshold(value) -> float:
+    """``min_transmittance`` as a float in [0, 1), else InputError."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0.0 <= value < 1.0:
+        raise InputError(f"min_transmittance must be a real number in [0, 1), got {value!r}")
+    return float(value)
 
 
 def _sh_degree(colors: torch.Tensor, sh_degree: int | None) -> int:
@@ -501,27 +561,20 @@ def _camera_bits(num_cameras: int) -> int:
     return (num_cameras - 1).bit_length()
 
 
-def _inclusive_scan(tile_counts: torch.Tensor, device: torch.device) -> torch.Tensor:
-    """Inclusive prefix sum of the int64 tile counts by ``wp.utils.array_scan`` (on torch's stream)."""
-    offsets = torch.empty_like(tile_counts)
-    with warp_scope(device):
-        wp.utils.array_scan(to_warp(tile_counts), to_warp(offsets), inclusive=True)
-    return offsets
-
-
-def _read_count_and_flags(offsets, flags, background) -> tuple[int, list[int]]:
-    """The single host sync of a forward: intersection count, validation flags, non-finite background."""
-    parts = [offsets[-1:], flags.to(torch.int64)]
-    if background is not None:
-        parts.append((~torch.isfinite(background)).sum().reshape(1))
-    values = torch.cat(parts).tolist()
-    return int(values[0]), [int(v) for v in values[1:]]
+def _read_count_and_flags(ints: torch.Tensor, rows: int) -> tuple[int, list[int]]:
+    """The single host sync of a forward: the intersection count (the last inclusive offset) and the validation
+    flags, read together from the int64 buffer ``[tile counts (rows) | offsets (rows) | flags]``."""
+    if rows == 0:
+        return 0, ints.tolist()
+    values = ints[2 * rows - 1 :].tolist()
+    return values[0], values[1:]
 
 
 def _raise_on_flags(flag_values: list[int]) -> None:
     for slot, name in _ARGUMENT_OF_FLAG.items():
         if flag_values[slot]:
-            raise InputError(f"{name} holds non-finite values (NaN or Inf) in {flag_values[slot]} row(s)")
+            unit = "value(s)" if slot in _CAMERA_FLAGS else "row(s)"
+            raise InputError(f"{name} holds non-finite values (NaN or Inf) in {flag_values[slot]} {unit}")
     if flag_values[raster_project.HUGE_COVARIANCE]:
         raise InputError(
             f"scales: {flag_values[raster_project.HUGE_COVARIANCE]} (camera, Gaussian) pair(s) have a 2D covariance "
@@ -529,8 +582,6 @@ def _raise_on_flags(flag_values: list[int]) -> None:
         )
     if flag_values[raster_project.ZERO_QUATS]:
         raise InputError(f"quats has {flag_values[raster_project.ZERO_QUATS]} zero quaternion(s) (no rotation)")
-    if len(flag_values) > raster_project.NUM_FLAGS and flag_values[raster_project.NUM_FLAGS]:
-        raise InputError(f"background holds {flag_values[raster_project.NUM_FLAGS]} non-finite value(s)")
 
 
 def _check_budget(count: int, max_bytes: int) -> None:
@@ -542,8 +593,9 @@ def _check_budget(count: int, max_bytes: int) -> None:
         )
 
 
-def _bin_intersections(splats, radii, tile_counts, offsets, count, num_cameras, settings: _Settings):
-    """Sorted row ids ``[count]`` and per-tile ranges ``[B*tiles, 2]`` (int32)."""
+def _bin_intersections(splats, radii, tile_counts, offsets, count: int, num_cameras: int, settings: _Settings,
+                       wdev) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """Sorted row ids ``[count]`` and per-tile ranges ``[B*tiles, 2]`` (int32) of the rows ``[B*N, 10]``."""
     device = splats.device
     num_tiles = num_cameras * settings.tiles_x * settings.tiles_y
     ranges = torch.zeros(num_tiles, 2, dtype=torch.int32, device=device)
@@ -551,36 +603,28 @@ def _bin_intersections(splats, radii, tile_counts, offsets, count, num_cameras, 
     values = torch.empty(2 * count, dtype=torch.int32, device=device)
     if count == 0:
         return ranges, values
-    rows = splats.detach().reshape(-1, raster_project.ROW_WIDTH)
     tile_bits = _tile_bits(settings)
-    with warp_scope(device) as wdev:
-        launch(
-            raster_tiles.emit_intersections,
-            rows.shape[0],
-            [
-                rows,
-                vectors(radii.reshape(-1, 2)),
-                tile_counts,
-                offsets,
-                splats.shape[1],
-                settings.tile_size,
-                settings.tiles_x,
-                settings.tiles_y,
-                tile_bits,
-                keys,
-                values,
-            ],
-            wdev,
-        )
-        wp.utils.radix_sort_pairs(
-            to_warp(keys), to_warp(values), count, 0, 32 + tile_bits + _camera_bits(num_cameras)
-        )
-        launch(
-            raster_tiles.tile_ranges,
-            count,
-            [keys, count, tile_bits, settings.tiles_x * settings.tiles_y, ranges],
-            wdev,
-        )
+    launch(
+        raster_tiles.emit_intersections,
+        splats.shape[0],
+        [
+            splats,
+            vectors(radii),
+            tile_counts,
+            offsets,
+            splats.shape[0] // num_cameras,
+            settings.tile_size,
+            settings.tiles_x,
+            settings.tiles_y,
+            tile_bits,
+            keys,
+            values,
+        ],
+        wdev,
+    )
+    wp.utils.radix_sort_pairs(to_warp(keys), to_warp(values), count, 0, 32 + tile_bits + _camera_bits(num_cameras))
+    launch(raster_tiles.tile_ranges, count, [keys, count, tile_bits, settings.tiles_x * settings.tiles_y, ranges],
+           wdev)  # fmt: skip
     return ranges, values[:count]
 
 
@@ -593,6 +637,5 @@ def _empty_render(means, viewmats, background, settings: _Settings):
     else:
         color = means.new_zeros(B, H, W, 3)
     radii = torch.zeros(B, 0, 2, dtype=torch.int32, device=means.device)
-    visible = torch.zeros(B, dtype=torch.int64, device=means.device)
     depth = zeros.clone() if settings.render_depth else None
-    return color, depth, zeros, RasterMeta(radii, visible, 0, settings.tile_size)
+    return color, depth, zeros, RasterMeta(radii, 0, settings.tile_size)

@@ -3,8 +3,8 @@
 Same conventions and constants as the Warp rasterizer (and gsplat 1.5.3): EWA projection with the
 frustum-clamped Jacobian, +0.3 px^2 blur, antialiasing compensation, opacity-aware radii and culling,
 ``alpha = min(0.999, o exp(-power))``, rows with ``alpha < 1/255`` skipped, a pixel stops before the first
-row that would take its transmittance to ``<= 1e-4``. Gradients come from torch autograd. Memory is
-``O(B * H * W * N)``: for tests and small benchmarks only.
+row that would take its transmittance to ``<= min_transmittance`` (gsplat's 1e-4 by default). Gradients come
+from torch autograd. Memory is ``O(B * H * W * N)``: for tests and small benchmarks only.
 
 Depth order ties are broken like the rasterizer's stable sort: by float32 depth, then Gaussian index.
 """
@@ -18,6 +18,7 @@ import torch
 ALPHA_THRESHOLD = 1.0 / 255.0
 MAX_ALPHA = 0.999
 MIN_TRANSMITTANCE = 1e-4
+"""Default early-stop transmittance (gsplat's)."""
 LOW_PASS_PX2 = 0.3
 MAX_EXTENT_SIGMAS = 3.33
 
@@ -111,8 +112,11 @@ def gaussian_colors(means, colors, viewmat, sh_degree):
     return torch.clamp_min((basis[..., None] * colors[:, : basis.shape[-1]]).sum(-2) + 0.5, 0.0)
 
 
-def composite(means2d, conics, opacities, colors, depths, visible, width, height, background):
-    """Dense front-to-back compositing of one camera: ``(rgb [H,W,3], depth_sum [H,W,1], alpha [H,W,1])``."""
+def composite(means2d, conics, opacities, colors, depths, visible, width, height, background,
+              min_transmittance=MIN_TRANSMITTANCE):  # fmt: skip
+    """Dense front-to-back compositing of one camera: ``(rgb [H,W,3], depth_sum [H,W,1], alpha [H,W,1])``.
+
+    Each pixel stops before the first used row whose transmittance after it is ``<= min_transmittance``."""
     order = torch.sort(depths.detach().float(), stable=True).indices
     order = order[visible[order]]
     mu, con, op, col, dep = means2d[order], conics[order], opacities[order], colors[order], depths[order]
@@ -131,7 +135,7 @@ def composite(means2d, conics, opacities, colors, depths, visible, width, height
     alpha = torch.where(used, alpha, torch.zeros_like(alpha))
     with torch.no_grad():
         before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], dim=1), dim=1)
-        stop = used & (before * (1 - alpha) <= MIN_TRANSMITTANCE)
+        stop = used & (before * (1 - alpha) <= min_transmittance)
         keep = torch.cumsum(stop.to(torch.int64), dim=1) == 0
     alpha = alpha * keep
     T_before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], dim=1), dim=1)
@@ -146,7 +150,7 @@ def composite(means2d, conics, opacities, colors, depths, visible, width, height
 
 def rasterize_dense(
     means, quats, scales, opacities, colors, viewmats, Ks, width, height, near=0.01, far=1e10,
-    background=None, mode="classic", sh_degree=None, render_depth=True,
+    background=None, mode="classic", sh_degree=None, render_depth=True, min_transmittance=MIN_TRANSMITTANCE,
 ):  # fmt: skip
     """Reference of :func:`codecsplat_warp.ops.raster.rasterize` (same arguments and outputs).
 
@@ -163,7 +167,8 @@ def rasterize_dense(
         color = gaussian_colors(means, colors, viewmats[b], sh_degree)
         bg = None if background is None else background[b]
         rgb, depth_sum, alpha = composite(proj["means2d"], proj["conics"], proj["opacities"], color,
-                                          proj["depths"], proj["visible"], width, height, bg)  # fmt: skip
+                                          proj["depths"], proj["visible"], width, height, bg,
+                                          min_transmittance)  # fmt: skip
         rgbs.append(rgb)
         depths.append(depth_sum / alpha.clamp_min(1e-10))
         alphas.append(alpha)

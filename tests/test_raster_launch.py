@@ -1,0 +1,92 @@
+"""codecsplat_warp.device.launch, which the rasterizer relies on for a low host overhead: a launch is checked and
+recorded once per argument types and thread, then replayed with new tensors, shapes and scalars."""
+
+from __future__ import annotations
+
+import gc
+import threading
+import weakref
+from typing import Any
+
+import pytest
+import torch
+import warp as wp
+from conftest import DEVICES
+
+from codecsplat_warp.device import launch, vectors, warp_scope
+from codecsplat_warp.errors import InputError
+
+
+@wp.kernel
+def _scaled_sum(points: wp.array(dtype=Any), weights: wp.array(dtype=Any), factor: Any, offset: int,
+                out: wp.array(dtype=Any)):  # fmt: skip
+    i = wp.tid()
+    p = points[i]
+    out[i] = factor * weights[i] * (p[0] + p[1] + p[2]) + type(factor)(float(offset * points.shape[0]))
+
+
+def _run(points: torch.Tensor, weights: torch.Tensor, factor: float, offset: int) -> torch.Tensor:
+    out = torch.empty_like(weights)
+    scalar = wp.float64 if points.dtype == torch.float64 else wp.float32
+    with warp_scope(points.device) as wdev:
+        launch(_scaled_sum, points.shape[0], [vectors(points), weights, scalar(factor), offset, out], wdev)
+    return out
+
+
+def _expected(points, weights, factor, offset):
+    return factor * weights * points.sum(dim=-1) + offset * points.shape[0]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_replays_follow_new_tensors_shapes_and_scalars(device, dtype):
+    g = torch.Generator().manual_seed(0)
+    for n, factor, offset in [(5, 2.0, 1), (5, -0.5, 3), (17, 3.0, -2), (1, 1.5, 0), (17, 0.25, 7)]:
+        points = torch.rand(n, 3, generator=g, dtype=dtype).to(device)
+        weights = torch.rand(n, generator=g, dtype=dtype).to(device)
+        torch.testing.assert_close(_run(points, weights, factor, offset), _expected(points, weights, factor, offset))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_non_contiguous_tensor_raises_on_a_replay_too(device):
+    points, weights = torch.rand(6, 3, device=device), torch.rand(6, device=device)
+    _run(points, weights, 1.0, 0)
+    with pytest.raises(InputError, match="'weights'.*contiguous"):
+        _run(points, torch.rand(12, device=device)[::2], 1.0, 0)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_recorded_launch_keeps_no_tensor_alive(device):
+    _run(torch.rand(4, 3, device=device), torch.rand(4, device=device), 1.0, 0)
+    points = torch.rand(8, 3, device=device)
+    alive = weakref.ref(points)
+    _run(points, torch.rand(8, device=device), 1.0, 0)
+    del points
+    gc.collect()
+    assert alive() is None
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_threads_replay_their_own_launches(device):
+    results, errors = {}, []
+
+    def work(seed: int) -> None:
+        try:
+            g = torch.Generator().manual_seed(seed)
+            for _ in range(50):
+                n = int(torch.randint(1, 64, (1,), generator=g))
+                points = torch.rand(n, 3, generator=g).to(device)
+                weights = torch.rand(n, generator=g).to(device)
+                factor = float(torch.rand(1, generator=g))
+                got = _run(points, weights, factor, seed)
+                torch.testing.assert_close(got, _expected(points, weights, factor, seed))
+            results[seed] = True
+        except Exception as exc:  # noqa: BLE001 - reported by the main thread
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(seed,)) for seed in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert not errors and len(results) == 4
