@@ -31,6 +31,7 @@ BENCHMARKS = {
     "codec": "codecsplat_warp.bench.codec",
     "extreme": "codecsplat_warp.bench.extreme",
     "geometry": "codecsplat_warp.bench.geometry",
+    "leaveout": "codecsplat_warp.bench.leaveout",
     "raster": "codecsplat_warp.bench.raster",
     "report": "codecsplat_warp.bench.report",
 }
@@ -95,7 +96,10 @@ def build_parser() -> argparse.ArgumentParser:
     _model_options(decode)
     decode.add_argument("bitstream", help="bitstream file written by codecsplat encode")
     decode.add_argument("-o", "--out", required=True, help="PLY file to write")
-    decode.add_argument("--prune", action="store_true", help="leave out Gaussians with opacity < 1/255")
+    decode.add_argument("--prune", action="store_true", help="leave out Gaussians with opacity < 1/255 (and, with "
+                                                              "--cameras, those outside every view of that file)")
+    decode.add_argument("--cameras", help="with --prune: pose file of the views the PLY is meant for (cameras.json or "
+                                          "any supported format, in the encoded scene's world frame)")
 
     render = sub.add_parser("render", help="scene bitstream -> rendered frames (PNG), GIF or MP4")
     _model_options(render)
@@ -205,7 +209,8 @@ def _cmd_demo(args) -> int:
         lines.append(f"  λ={row['lam']:<6g}{format_bytes(row['bytes']):>12s}  {quality}  "
                      f"encode {row['encode_s']:.2f} s, decode {row['decode_s']:.2f} s")
     ply = summary["ply"]
-    lines += [f"PLY (λ={ply['lambda']:g}): {ply['gaussians']:,d} Gaussians, {ply['pruned']:,d} pruned (opacity < 1/255)",
+    lines += [f"PLY (λ={ply['lambda']:g}): {ply['gaussians']:,d} Gaussians, {ply['pruned']:,d} pruned "
+              "(opacity < 1/255 or seen by no demo view)",
               f"LPIPS: {summary['lpips']}",
               f"wrote {len(summary['files'])} files to {args.out}/ in {summary['seconds']:.1f} s "
               "(comparison.png, rate_distortion.png, scene.ply, summary.json, ...)"]
@@ -279,30 +284,48 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def _cmd_decode(args) -> int:
-    from .evaluate import timed
-    from .export.ply import prune_transparent, write_ply
+    import torch
 
+    from .data import load_scene
+    from .evaluate import timed
+    from .export.ply import write_ply
+    from .model.prune import prune_gaussians
+
+    if args.cameras and not args.prune:
+        raise UsageError("--cameras only chooses what --prune leaves out: pass --prune too")
     device = _device(args)
     data = _read_bitstream(args.bitstream)
-    with _progress(args, ["model", "decode", "write"]) as advance:
+    targets = load_scene(args.cameras).cameras.to(device, torch.float32) if args.cameras else None
+    with _progress(args, ["model", "decode", "prune", "write"]) as advance:
         model = _load_model(args, device)
         advance()
         scene, decode_s = timed(lambda: model.decode_scene(data), device)
-        gaussians, pruned = prune_transparent(scene.gaussians) if args.prune else (scene.gaussians, 0)
+        advance()
+        gaussians, report, prune_s = scene.gaussians, None, 0.0
+        if args.prune:
+            (gaussians, report), prune_s = timed(lambda: prune_gaussians(scene.gaussians, targets), device)
         advance()
         start = time.perf_counter()
         size = write_ply(args.out, gaussians)
         write_s = time.perf_counter() - start
         advance()
-    result = {"output": args.out, "gaussians": len(gaussians), "pruned": pruned, "ply_bytes": size,
-              "bitstream_bytes": len(data), "lambda": scene.lam, "views": scene.cameras.num_views,
-              "seconds": {"decode": decode_s, "write": write_s}}
+    result = {"output": args.out, "gaussians": len(gaussians), "pruned": report.pruned if report else 0,
+              "prune": report.to_dict() if report else None, "ply_bytes": size, "bitstream_bytes": len(data),
+              "lambda": scene.lam, "views": scene.cameras.num_views,
+              "seconds": {"decode": decode_s, "prune": prune_s, "write": write_s}}
     lines = [f"decoded {args.bitstream} ({len(data):,d} B, λ={scene.lam:g}, {scene.cameras.num_views} views) on {device}",
-             f"wrote {len(gaussians):,d} Gaussians to {args.out} ({size:,d} B)"
-             + (f"; left out {pruned:,d} with opacity < 1/255" if args.prune else ""),
-             f"decode {decode_s:.2f} s, write {write_s:.2f} s"]
+             f"wrote {len(gaussians):,d} Gaussians to {args.out} ({size:,d} B)"]
+    if report:
+        lines.append(_prune_line(report, f"every view of {args.cameras}" if args.cameras else None))
+    lines.append(f"decode {decode_s:.2f} s, prune {prune_s:.2f} s, write {write_s:.2f} s")
     _emit(args, result, lines)
     return EXIT_OK
+
+
+def _prune_line(report, views: str | None) -> str:
+    """One line saying what pruning left out (``views``: what the frustum test used, None for opacity only)."""
+    line = f"left out {report.pruned:,d} of {report.total:,d} Gaussians: {report.transparent:,d} with opacity < 1/255"
+    return line + (f", {report.outside_frusta:,d} outside {views}" if views else "")
 
 
 def _cmd_render(args) -> int:
@@ -310,7 +333,9 @@ def _cmd_render(args) -> int:
     import torch
 
     from .data import load_scene
+    from .evaluate import timed
     from .export.video import MP4_MISSING, mp4_plugin, orbit_cameras, to_uint8_frames, write_frames
+    from .model.prune import prune_gaussians
 
     if args.format == "mp4" and mp4_plugin() is None:
         raise UsageError(MP4_MISSING)
@@ -322,25 +347,29 @@ def _cmd_render(args) -> int:
     data = _read_bitstream(args.bitstream)
     posed = load_scene(args.cameras).cameras if args.cameras else None
     count = posed.num_views if posed is not None else args.orbit
-    with _progress(args, ["model", "decode", *(f"frame {i}" for i in range(count)), "write"]) as advance:
+    with _progress(args, ["model", "decode", "prune", *(f"frame {i}" for i in range(count)), "write"]) as advance:
         model = _load_model(args, device)
         advance()
         scene = model.decode_scene(data)
         cameras = posed if posed is not None else orbit_cameras(scene.cameras, scene.depth, count)
         cameras = cameras.to(device, torch.float32)
         advance()
+        (gaussians, report), prune_s = timed(lambda: prune_gaussians(scene.gaussians, cameras), device)
+        advance()
         frames = []
         start = time.perf_counter()
         with torch.no_grad():
             for view in range(count):
-                frames.append(to_uint8_frames(model.render(scene.gaussians, cameras.select([view]))["rgb"])[0])
+                frames.append(to_uint8_frames(model.render(gaussians, cameras.select([view]))["rgb"])[0])
                 advance()
         render_s = time.perf_counter() - start
         paths = write_frames(args.out, np.stack(frames), args.format, args.fps)
         advance()
     result = {"output": [str(p) for p in paths], "frames": count, "width": cameras.width,
-              "height": cameras.height, "format": args.format, "seconds": {"render": render_s}}
+              "height": cameras.height, "format": args.format, "prune": report.to_dict(),
+              "seconds": {"prune": prune_s, "render": render_s}}
     lines = [f"rendered {count} frames at {cameras.width}x{cameras.height} in {render_s:.2f} s on {device}",
+             _prune_line(report, "every frame") + f" (in {prune_s:.2f} s)",
              f"wrote {paths[0]}" if len(paths) == 1 else f"wrote {len(paths)} PNG frames to {args.out}/"]
     _emit(args, result, lines)
     return EXIT_OK

@@ -5,7 +5,8 @@ model's image size; its context views are encoded at a few lambdas, each bitstre
 target views rendered and scored against the exact ground-truth images. Written to the output folder:
 
 * ``scene-lambda<L>.csplat``: the scene bitstreams;
-* ``scene.ply``: the Gaussians decoded from the largest lambda, pruned of invisible ones (3DGS PLY);
+* ``scene.ply``: the Gaussians decoded from the largest lambda, pruned of those that no demo view (context or
+  target) can show (:func:`~codecsplat_warp.model.prune.prune_gaussians`; 3DGS PLY);
 * ``renders/target<i>-lambda<L>.png`` and ``comparison.png`` (ground truth | one column per lambda);
 * ``rate_distortion.png`` and ``summary.json`` (bytes per part, metrics, seconds).
 """
@@ -22,15 +23,17 @@ import torch
 from tqdm.auto import tqdm
 
 from .bench.common import write_json
+from .cameras import Cameras
 from .codec import bytes_report, check_lambda
 from .data.procedural import ProceduralConfig, procedural_scene
 from .errors import InputError
 from .data import split_context_targets
 from .evaluate import Sample, format_bytes, plot_rate_distortion, pyplot, save_figure, timed
 from .export.files import atomic_output, write_bytes
-from .export.ply import prune_transparent, write_ply
+from .export.ply import write_ply
 from .export.video import to_uint8_frames
 from .metrics.image import ImageMetrics
+from .model.prune import prune_gaussians
 
 DEMO_SEED = 3
 DEMO_LAMBDAS = (16.0, 128.0, 1024.0)
@@ -83,15 +86,18 @@ def run_demo(model, config: DemoConfig, device: torch.device) -> dict:
             progress.update(1)
             progress.set_postfix_str(f"decode λ={lam:g}")
             decoded, decode_s = timed(lambda: model.decode_scene(data), device)
+            (visible, target_report), prune_s = timed(
+                lambda: prune_gaussians(decoded.gaussians, sample.target_cameras), device)
             with torch.no_grad():
-                rgb = model.render(decoded.gaussians, sample.target_cameras)["rgb"]
+                rgb = model.render(visible, sample.target_cameras)["rgb"]
             scores = {k: statistics.fmean(v) for k, v in metrics(rgb, sample.target_images).items()}
             rows.append({"method": "CodecSplat", "setting": f"λ={lam:g}", "lam": lam, "bytes": len(data),
-                         "parts": bytes_report(data), **scores, "encode_s": encode_s, "decode_s": decode_s})
+                         "parts": bytes_report(data), **scores, "encode_s": encode_s, "decode_s": decode_s,
+                         "prune_s": prune_s, "pruned_for_targets": target_report.to_dict()})
             renders.append(to_uint8_frames(rgb))
             progress.update(1)
         progress.set_postfix_str("PLY and plots")
-        kept, pruned = prune_transparent(decoded.gaussians)  # the largest lambda's scene
+        kept, ply_report = prune_gaussians(decoded.gaussians, _demo_views(sample))  # the largest lambda's scene
         ply_bytes = write_ply(out / "scene.ply", kept)
         files = _write_images(out, sample, rows, renders)
         plot_rate_distortion(rows, out / "rate_distortion.png")
@@ -100,14 +106,22 @@ def run_demo(model, config: DemoConfig, device: torch.device) -> dict:
         "config": asdict(config), "device": str(device), "scene": sample.scene, "context_views": sample.context,
         "target_views": sample.target, "image_size": [sample.context_cameras.height, sample.context_cameras.width],
         "lpips": metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1", "rows": rows,
-        "ply": {"path": str(out / "scene.ply"), "gaussians": len(kept), "pruned": pruned, "bytes": ply_bytes,
-                "lambda": lambdas[-1]},
+        "ply": {"path": str(out / "scene.ply"), "gaussians": len(kept), "pruned": ply_report.pruned,
+                "prune": ply_report.to_dict(), "bytes": ply_bytes, "lambda": lambdas[-1]},
         "files": [str(out / f"scene-lambda{lam:g}.csplat") for lam in lambdas] + files
         + [str(out / "scene.ply"), str(out / "rate_distortion.png"), str(out / "summary.json")],
         "seconds": time.perf_counter() - start,
     }
     write_json(out / "summary.json", summary)
     return summary
+
+
+def _demo_views(sample: Sample) -> Cameras:
+    """The context and target cameras of ``sample`` as one batch."""
+    context, target = sample.context_cameras, sample.target_cameras.to(dtype=sample.context_cameras.dtype)
+    return Cameras(K=torch.cat([context.K, target.K]), w2c=torch.cat([context.w2c, target.w2c]),
+                   near=torch.cat([context.near, target.near]), far=torch.cat([context.far, target.far]),
+                   width=context.width, height=context.height)
 
 
 def _write_images(out: pathlib.Path, sample: Sample, rows: list[dict], renders: list[np.ndarray]) -> list[str]:

@@ -28,10 +28,9 @@ from plyfile import PlyData, PlyElement, PlyParseError
 
 from ..errors import DataError
 from ..model.gaussians import Gaussians
+from ..model.prune import OPACITY_THRESHOLD as OPACITY_PRUNE_THRESHOLD  # noqa: F401 (export's API)
+from ..model.prune import prune_transparent  # noqa: F401 (export's API; pruning lives in model.prune)
 from .files import write_bytes
-
-OPACITY_PRUNE_THRESHOLD = 1.0 / 255.0
-"""Gaussians with an opacity below this contribute nothing visible to an 8-bit image."""
 
 _OPACITY_EPS = 2.0**-24
 """Opacities are clamped to [eps, 1 - eps] before the logit, so float32 sigmoid outputs of exactly 0 or 1 stay finite."""
@@ -152,10 +151,3 @@ def _read_gaussians(path: str, device: torch.device | str) -> Gaussians:
     vertices = ply["vertex"].data
     return gaussians_from_attributes({name: np.array(vertices[name]) for name in vertices.dtype.names}, device)
 
-
-def prune_transparent(gaussians: Gaussians, threshold: float = OPACITY_PRUNE_THRESHOLD) -> tuple[Gaussians, int]:
-    """The Gaussians whose opacity is at least ``threshold`` (default 1/255), and how many were left out."""
-    keep = gaussians.opacities >= threshold
-    kept = Gaussians(gaussians.means[keep], gaussians.quats[keep], gaussians.scales[keep],
-                     gaussians.opacities[keep], gaussians.sh[keep])
-    return kept, len(gaussians) - len(kept)

@@ -206,12 +206,13 @@ class CodecSplat(nn.Module):
         """
         common_device(means=gaussians.means, K=cameras.K)
         cams = cameras.to(dtype=torch.float32)
+        near, far = render_depth_range(cams)
         with torch.autocast(gaussians.means.device.type, enabled=False):
             rgb, depth, alpha, meta = rasterize(
                 gaussians.means.float(), gaussians.quats.float(), gaussians.scales.float(),
                 gaussians.opacities.float(), gaussians.sh.float(), cams.w2c, cams.K, cams.width, cams.height,
-                near=float(cams.near.min()) * RENDER_NEAR_FRACTION, far=float(cams.far.max()) * RENDER_FAR_FACTOR,
-                background=background, mode="classic", sh_degree=gaussians.sh_degree, render_depth=render_depth,
+                near=near, far=far, background=background, mode="classic", sh_degree=gaussians.sh_degree,
+                render_depth=render_depth,
             )
         return {"rgb": rgb.permute(0, 3, 1, 2), "alpha": alpha[..., 0],
                 "depth": depth[..., 0] if depth is not None else None, "meta": meta}
@@ -243,6 +244,13 @@ class CodecSplat(nn.Module):
         if bool(images.min() < 0) or bool(images.max() > 1):
             raise InputError("images must hold values in [0, 1]")
         return images.to(param.dtype)
+
+
+def render_depth_range(cameras: Cameras) -> tuple[float, float]:
+    """(near, far) camera depth range :meth:`CodecSplat.render` culls with for target ``cameras``:
+    :data:`RENDER_NEAR_FRACTION` x their smallest near and :data:`RENDER_FAR_FACTOR` x their largest far
+    (world units). The range of any subset of the cameras lies inside it."""
+    return float(cameras.near.min()) * RENDER_NEAR_FRACTION, float(cameras.far.max()) * RENDER_FAR_FACTOR
 
 
 def _same_device(a: torch.device, b: torch.device) -> bool:
