@@ -50,7 +50,25 @@ def test_shared_intrinsics_and_depth_range_are_stored_once():
     varied = shared.with_depth_range(torch.tensor([0.5, 0.6, 0.7, 0.8]), 20.0)
     header = parse_bitstream(_packed(varied, STREAMS * 2)).header
     assert header.flags & bs.FLAG_SHARED_INTRINSICS and not header.flags & bs.FLAG_SHARED_DEPTH_RANGE
-    assert bs._record_bytes(4, header.flags) == 5 + 4 * (4 + 28 + 8)
+    assert bs.record_bytes(4, header.flags) == 5 + 4 * (4 + 28 + 8)
+
+
+def test_camera_record_is_stored_raw_when_deflate_would_grow_it():
+    few = make_rig(2, 48, 32, dtype=torch.float32)  # 2 views of distinct numbers: Deflate cannot shrink 85 bytes
+    parsed = parse_bitstream(_packed(few))
+    assert parsed.header.flags & bs.FLAG_RAW_CAMERAS
+    assert parsed.part_bytes["cameras"] == bs.framed_bytes(bs.record_bytes(2, parsed.header.flags))
+    torch.testing.assert_close(parsed.cameras.w2c, few.w2c, atol=1e-5, rtol=1e-5)
+    rig = make_rig(2, 48, 32, dtype=torch.float32)
+    repeated = rig.__class__(K=rig.K[:1].expand(16, 3, 3).clone(), w2c=rig.w2c[:1].expand(16, 4, 4).clone(),
+                             near=rig.near[:1].expand(16).clone(), far=rig.far[:1].expand(16).clone(), width=48,
+                             height=32)  # fmt: skip
+    parsed = parse_bitstream(_packed(repeated, STREAMS * 8))
+    assert not parsed.header.flags & bs.FLAG_RAW_CAMERAS
+    assert parsed.part_bytes["cameras"] < bs.framed_bytes(bs.record_bytes(16, parsed.header.flags))
+    raw = _frames(_header(bs.FLAG_RAW_CAMERAS), bs._camera_record(few)[0] + b"\x00", STREAMS)
+    with pytest.raises(BitstreamError, match="corrupt camera stream"):
+        parse_bitstream(raw)
 
 
 def test_packing_checks_its_inputs():
@@ -177,19 +195,19 @@ def test_fuzz_mutated_and_truncated_bitstreams(edits, cut):
 
 
 @FUZZ
-@given(flags=st.integers(0, 7), views=st.integers(0, 70), height=st.integers(0, 9000), width=st.integers(0, 9000),
+@given(flags=st.integers(0, 15), views=st.integers(0, 70), height=st.integers(0, 9000), width=st.integers(0, 9000),
        exact=st.booleans(), data=st.data(), streams=st.lists(st.binary(max_size=24), max_size=4),
        lam=st.floats(allow_nan=True, allow_infinity=True, width=32))
 def test_fuzz_well_framed_inputs_with_valid_crcs(flags, views, height, width, exact, data, streams, lam):
     """Valid framing and CRCs, so the fuzzing reaches the camera record and stream checks; with ``exact`` the
     camera numbers have the size the views and flags call for (random, or plausible cameras)."""
-    size = bs._record_bytes(views, flags) - 5
+    size = bs.record_bytes(views, flags) - 5
     numbers = data.draw(st.binary(min_size=size, max_size=size) if exact else st.binary(max_size=600))
     if exact and views and data.draw(st.booleans()):
         numbers = _plausible_numbers(views, flags, data.draw(st.integers(0, 2**16)))
     record = struct.pack("<HHB", height, width, views % 256) + numbers
     deflater = zlib.compressobj(9, zlib.DEFLATED, -15)
-    payload = deflater.compress(record) + deflater.flush()
+    payload = record if flags & bs.FLAG_RAW_CAMERAS else deflater.compress(record) + deflater.flush()
     _parse_within_bounds(_frames(_header(flags=flags, lam=lam), payload, streams))
 
 

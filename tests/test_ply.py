@@ -10,7 +10,8 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from codecsplat_warp.errors import DataError
-from codecsplat_warp.export import OPACITY_PRUNE_THRESHOLD, attribute_names, prune_transparent, read_ply, write_ply
+from codecsplat_warp.export import attribute_names, read_ply, write_ply
+from codecsplat_warp.model.prune import OPACITY_THRESHOLD, prune_transparent
 from codecsplat_warp.model import Gaussians
 
 
@@ -75,7 +76,7 @@ def test_prune_leaves_out_gaussians_below_one_255th():
     gaussians = random_gaussians(10, degree=1)
     gaussians.opacities[:] = torch.tensor([0.0, 0.5 / 255, 0.999 / 255, 1.0 / 255, 0.01, 0.5, 0.9, 1e-5, 0.2, 1.0])
     kept, removed = prune_transparent(gaussians)
-    assert removed == 4 and len(kept) == 6 and bool((kept.opacities >= OPACITY_PRUNE_THRESHOLD).all())
+    assert removed == 4 and len(kept) == 6 and bool((kept.opacities >= OPACITY_THRESHOLD).all())
     torch.testing.assert_close(kept.means, gaussians.means[gaussians.opacities >= 1 / 255])
 
 

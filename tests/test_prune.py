@@ -8,11 +8,11 @@ import torch
 
 from codecsplat_warp.cameras import Cameras
 from codecsplat_warp.errors import DeviceMismatchError
-from codecsplat_warp.export import OPACITY_PRUNE_THRESHOLD, prune_transparent
 from codecsplat_warp.model import CodecSplat, get_preset
 from codecsplat_warp.model.codecsplat import render_depth_range
 from codecsplat_warp.model.gaussians import Gaussians
-from codecsplat_warp.model.prune import OPACITY_THRESHOLD, PruneReport, depth_rounding_bound, prune_gaussians
+from codecsplat_warp.model.prune import (OPACITY_THRESHOLD, PruneReport, depth_rounding_bound, prune_gaussians,
+                                         prune_transparent)
 from codecsplat_warp.ops.raster import rasterize
 from codecsplat_warp.synthetic import make_rig
 
@@ -133,7 +133,7 @@ def test_opacity_only_without_cameras_and_the_export_names():
     assert report == PruneReport(len(gaussians), counts["transparent"], 0, len(gaussians) - counts["transparent"])
     opaque, removed = prune_transparent(gaussians)
     assert removed == counts["transparent"] and torch.equal(opaque.means, kept.means)
-    assert OPACITY_PRUNE_THRESHOLD == OPACITY_THRESHOLD == 1 / 255
+    assert OPACITY_THRESHOLD == 1 / 255
 
 
 def test_nothing_left_and_nothing_given():

@@ -38,7 +38,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..codec import bytes_report, parse_bitstream
-from ..codec.bitstream import _CRC_BYTES, FLAG_FLOAT64_CAMERAS, HEADER_BYTES, _record_bytes, _varint
+from ..codec.bitstream import FLAG_FLOAT64_CAMERAS, HEADER_BYTES, framed_bytes, record_bytes
 from ..errors import DataError, InputError
 from ..evaluate import PROTOCOLS, Protocol, find_scenes, scene_samples
 from ..export.ply import encode_ply
@@ -375,7 +375,7 @@ def naive_layout(data: bytes) -> dict:
     a flags byte per view slot (``saved_flags``); intrinsics and near/far per view instead of once when the
     views share them (``saved_shared``); :data:`NAIVE_VIEW_SLOTS` slots, the unused ones an empty camera
     entry and an empty framed stream (``saved_padding``); and the camera record stored raw
-    (``saved_deflate``, negative when Deflate's framing outweighs what it removes). The savings add up to
+    (``saved_deflate``: what Deflate removes; 0 when the record is stored raw because Deflate would grow it). The savings add up to
     ``naive_bytes - bytes``.
     """
     parsed = parse_bitstream(data)
@@ -384,24 +384,19 @@ def naive_layout(data: bytes) -> dict:
     slots = max(NAIVE_VIEW_SLOTS, views)
     flags = parsed.header.flags
     unshared = flags & FLAG_FLOAT64_CAMERAS
-    real_record = _framed(_record_bytes(views, flags))
-    unshared_record = _framed(_record_bytes(views, unshared))
-    padded_record = _framed(_record_bytes(slots, unshared))
+    real_record = framed_bytes(record_bytes(views, flags))
+    unshared_record = framed_bytes(record_bytes(views, unshared))
+    padded_record = framed_bytes(record_bytes(slots, unshared))
     saved = {
         "saved_flags": slots,
         "saved_shared": unshared_record - real_record,
-        "saved_padding": padded_record - unshared_record + (slots - views) * _framed(0),
+        "saved_padding": padded_record - unshared_record + (slots - views) * framed_bytes(0),
         "saved_deflate": real_record - parts["cameras"],
     }
     naive = parts["total"] + sum(saved.values())
     return {"views": views, "bytes": parts["total"], "header_cameras": parts["header"] + parts["cameras"],
             "naive_header_cameras": HEADER_BYTES + slots + padded_record, "naive_bytes": naive,
             "saved": naive - parts["total"], **saved, "parts": parts}
-
-
-def _framed(payload_bytes: int) -> int:
-    """Bytes of a framed stream (varint length, CRC32, payload) with a payload of ``payload_bytes``."""
-    return len(_varint(payload_bytes)) + _CRC_BYTES + payload_bytes
 
 
 VIEWS_COLUMNS = [
@@ -427,7 +422,7 @@ def measure_view_counts(model, path, protocol: Protocol, lam: float, max_views: 
         parts = naive["parts"]
         view_parts = [k for k in parts if k.startswith("view")]
         rows.append({"scene": path.name, "views": views, "bytes": len(data), "header_cameras": naive["header_cameras"],
-                     "camera_record": _record_bytes(views, parse_bitstream(data).header.flags),
+                     "camera_record": record_bytes(views, parse_bitstream(data).header.flags),
                      "view_streams": len(view_parts), "feature_bytes": sum(parts[k] for k in view_parts),
                      "naive_bytes": naive["naive_bytes"]})
         print(f"  {path.name} with {views} views: {len(data):,d} B in {len(view_parts)} view streams", flush=True)

@@ -3,7 +3,8 @@
 Layout (little-endian, no padding or alignment anywhere)::
 
     header      magic "CSPL" | format version u8 | flags u8 | model id 8 bytes | lambda float32     (18 bytes)
-    cameras     length varint | CRC32 u32 of (header + payload) | payload = raw Deflate(camera record)
+    cameras     length varint | CRC32 u32 of (header + payload) | payload = raw Deflate(camera record), or the
+                record itself with FLAG_RAW_CAMERAS (written when Deflate would not make it smaller)
     view 0      length varint | CRC32 u32 of payload | payload = range-coded latents of view 0
     ...
     view V-1    (V is read from the camera record)
@@ -40,8 +41,8 @@ from ..model.gaussians import quat_to_rotmat, rotmat_to_quat
 from .latent import LAMBDA_MAX, LAMBDA_MIN
 
 MAGIC = b"CSPL"
-FORMAT_VERSION = 1
-"""The format version this code writes and the newest it reads."""
+FORMAT_VERSION = 2
+"""The format version this code writes and the newest it reads (version 1 lacks :data:`FLAG_RAW_CAMERAS`)."""
 
 FLAG_SHARED_INTRINSICS = 1
 """Every view has the same fx, fy, cx, cy: stored once."""
@@ -52,7 +53,10 @@ FLAG_SHARED_DEPTH_RANGE = 2
 FLAG_FLOAT64_CAMERAS = 4
 """Camera numbers are float64 (written when the model computes in float64), else float32."""
 
-KNOWN_FLAGS = FLAG_SHARED_INTRINSICS | FLAG_SHARED_DEPTH_RANGE | FLAG_FLOAT64_CAMERAS
+FLAG_RAW_CAMERAS = 8
+"""The camera record is stored as is: Deflate would have made it larger (small records of few views)."""
+
+KNOWN_FLAGS = FLAG_SHARED_INTRINSICS | FLAG_SHARED_DEPTH_RANGE | FLAG_FLOAT64_CAMERAS | FLAG_RAW_CAMERAS
 
 MODEL_ID_BYTES = 8
 """Bytes of the model identifier (the first 16 hex digits of its SHA-256 content hash)."""
@@ -67,7 +71,8 @@ MAX_PIXELS = 2**26
 _HEADER = struct.Struct("<4sBB8sf")
 HEADER_BYTES = _HEADER.size
 _SHAPE = struct.Struct("<HHB")
-_CRC_BYTES = 4
+CRC_BYTES = 4
+"""Bytes of the CRC32 in every frame."""
 _MAX_VARINT_BYTES = 5
 """Stream lengths are below 2**35; anything longer than the input is rejected anyway."""
 
@@ -123,16 +128,23 @@ def pack_bitstream(model_id: str, lam: float, cameras: Cameras, feature_streams:
         raise InputError(f"{cameras.num_views} cameras need as many feature streams, got {len(feature_streams)}")
     _check_shape(cameras.height, cameras.width, cameras.num_views, InputError)
     record, flags = _camera_record(cameras)
-    header = _HEADER.pack(MAGIC, FORMAT_VERSION, flags, bytes.fromhex(model_id), float(lam))
     deflater = zlib.compressobj(9, zlib.DEFLATED, -15)
-    compressed = deflater.compress(record) + deflater.flush()
-    parts = [header, _frame(compressed, zlib.crc32(compressed, zlib.crc32(header)))]
+    payload = deflater.compress(record) + deflater.flush()
+    if len(payload) >= len(record):
+        payload, flags = record, flags | FLAG_RAW_CAMERAS
+    header = _HEADER.pack(MAGIC, FORMAT_VERSION, flags, bytes.fromhex(model_id), float(lam))
+    parts = [header, _frame(payload, zlib.crc32(payload, zlib.crc32(header)))]
     parts += [_frame(stream, zlib.crc32(stream)) for stream in feature_streams]
     return b"".join(parts)
 
 
 def _frame(payload: bytes, crc: int) -> bytes:
     return _varint(len(payload)) + struct.pack("<I", crc) + payload
+
+
+def framed_bytes(payload_bytes: int) -> int:
+    """Bytes of a frame (varint length, CRC32, payload) around a payload of ``payload_bytes``."""
+    return len(_varint(payload_bytes)) + CRC_BYTES + payload_bytes
 
 
 def _varint(value: int) -> bytes:
@@ -222,14 +234,14 @@ def bytes_report(data: bytes) -> dict[str, int]:
 def _read_frame(view: memoryview, offset: int, what: str, crc_seed: int = 0) -> tuple[memoryview, int]:
     """(payload, offset after it) of the length-CRC-payload frame at ``offset``; checks bounds and CRC."""
     length, offset = _read_varint(view, offset, what)
-    if offset + _CRC_BYTES + length > len(view):
-        left = max(0, len(view) - offset - _CRC_BYTES)
+    if offset + CRC_BYTES + length > len(view):
+        left = max(0, len(view) - offset - CRC_BYTES)
         raise BitstreamError(f"truncated bitstream: the {what} needs {length} bytes, {left} left")
     (crc,) = struct.unpack_from("<I", view, offset)
-    payload = view[offset + _CRC_BYTES:offset + _CRC_BYTES + length]
+    payload = view[offset + CRC_BYTES:offset + CRC_BYTES + length]
     if zlib.crc32(payload, crc_seed) != crc:
         raise BitstreamError(f"corrupt bitstream: CRC mismatch in the {what}")
-    return payload, offset + _CRC_BYTES + length
+    return payload, offset + CRC_BYTES + length
 
 
 def _read_varint(view: memoryview, offset: int, what: str) -> tuple[int, int]:
@@ -255,8 +267,8 @@ def _check_shape(height: int, width: int, views: int, error: type[Exception] = B
         raise error(f"{views} views of {height}x{width} exceed the limit of {MAX_PIXELS} context pixels")
 
 
-def _record_bytes(views: int, flags: int) -> int:
-    """Exact size of a camera record with these views and flags."""
+def record_bytes(views: int, flags: int) -> int:
+    """Exact size in bytes of a camera record (before Deflate) with these views and flags."""
     intrinsics = 4 if flags & FLAG_SHARED_INTRINSICS else 4 * views
     depth_range = 2 if flags & FLAG_SHARED_DEPTH_RANGE else 2 * views
     number = 8 if flags & FLAG_FLOAT64_CAMERAS else 4
@@ -276,14 +288,17 @@ def _inflate(payload: memoryview, limit: int) -> bytes:
 
 
 def _parse_cameras(payload: memoryview, flags: int) -> Cameras:
-    record = _inflate(payload, _record_bytes(MAX_VIEWS, flags))
+    if flags & FLAG_RAW_CAMERAS:
+        record = bytes(payload[: record_bytes(MAX_VIEWS, flags) + 1])
+    else:
+        record = _inflate(payload, record_bytes(MAX_VIEWS, flags))
     if len(record) < _SHAPE.size:
         raise BitstreamError("corrupt camera stream: shorter than its image shape")
     height, width, views = _SHAPE.unpack_from(record, 0)
     _check_shape(height, width, views)
-    if len(record) != _record_bytes(views, flags):
+    if len(record) != record_bytes(views, flags):
         raise BitstreamError(f"corrupt camera stream: {len(record)} bytes for {views} views, expected "
-                             f"{_record_bytes(views, flags)}")
+                             f"{record_bytes(views, flags)}")
     float64 = bool(flags & FLAG_FLOAT64_CAMERAS)
     dtype = torch.float64 if float64 else torch.float32
     numbers = torch.from_numpy(np.frombuffer(record, dtype="<f8" if float64 else "<f4", offset=_SHAPE.size).astype(

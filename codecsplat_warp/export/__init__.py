@@ -1,13 +1,13 @@
-"""Files for other tools: 3DGS PLY export / import, opacity pruning, novel-view frames and videos, atomic output."""
+"""Files for other tools: 3DGS PLY export / import, novel-view frames and videos, atomic output."""
 
 from .files import atomic_output, write_bytes, write_text
-from .ply import (OPACITY_PRUNE_THRESHOLD, attribute_names, decode_ply, encode_ply, gaussians_from_attributes,
-                  ply_attributes, prune_transparent, read_ply, write_ply)
+from .ply import (attribute_names, decode_ply, encode_ply, gaussians_from_attributes,
+                  ply_attributes, read_ply, write_ply)
 from .video import FORMATS, MP4_MISSING, mp4_plugin, orbit_cameras, to_uint8_frames, write_frames
 
 __all__ = [
     "FORMATS", "MP4_MISSING", "mp4_plugin", "orbit_cameras", "to_uint8_frames", "write_frames",
-    "OPACITY_PRUNE_THRESHOLD", "atomic_output", "attribute_names", "decode_ply", "encode_ply",
-    "gaussians_from_attributes", "ply_attributes", "prune_transparent", "read_ply", "write_bytes", "write_ply",
+    "atomic_output", "attribute_names", "decode_ply", "encode_ply",
+    "gaussians_from_attributes", "ply_attributes", "read_ply", "write_bytes", "write_ply",
     "write_text",
 ]

@@ -28,8 +28,6 @@ from plyfile import PlyData, PlyElement, PlyParseError
 
 from ..errors import DataError
 from ..model.gaussians import Gaussians
-from ..model.prune import OPACITY_THRESHOLD as OPACITY_PRUNE_THRESHOLD  # noqa: F401 (export's API)
-from ..model.prune import prune_transparent  # noqa: F401 (export's API; pruning lives in model.prune)
 from .files import write_bytes
 
 _OPACITY_EPS = 2.0**-24
