@@ -1,11 +1,12 @@
 """Per-tile front-to-back alpha compositing of projected Gaussians and its hand-written backward.
 
-Both kernels are launched with :func:`warp.launch_tiled`. Each thread owns exactly one pixel; a tile of
-``tile_size^2`` pixels is covered by ``blocks_per_tile = tile_size^2 / block_dim`` blocks (1 on CUDA with
-``block_dim = tile_size^2``; ``tile_size^2`` on the CPU, whose blocks have one lane). Every block stages
-``batch`` projected rows of its tile's depth-sorted list in shared memory (``tile_load`` of the ids, then
-``tile_load_indexed`` of the rows) and each thread walks the staged rows for its pixel. ``batch`` is a
-compile-time constant of :func:`composite_kernels` (``tile_size^2`` on CUDA, small on the CPU where every
+Both kernels are launched with :func:`warp.launch_tiled`. Each thread owns at most one pixel; a tile of
+``tile_size^2`` pixels is covered by ``blocks_per_tile = ceil(tile_size^2 / block_dim)`` blocks (on CUDA
+``block_dim = min(tile_size^2, 256)``, so one block per tile up to 16x16 tiles; on the CPU blocks have one
+lane and a tile has ``tile_size^2`` of them). Lanes of a tile's last block beyond its pixels own none. Every
+block stages ``batch`` projected rows of its tile's depth-sorted list in shared memory (``tile_load`` of the
+ids, then ``tile_load_indexed`` of the rows) and each thread walks the staged rows for its pixel. ``batch``
+is a compile-time constant of :func:`composite_kernels` (``block_dim`` on CUDA, small on the CPU where every
 one-pixel block stages its own copy).
 
 Constants are gsplat's: ``alpha = min(0.999, opacity * exp(-power))``; rows with ``power < 0`` or
@@ -38,16 +39,21 @@ ROWS = wp.constant(10)
 
 MAX_ALPHA = 0.999
 MIN_ALPHA = 1.0 / 255.0
+OUTSIDE_ROW = wp.constant(1 << 30)
+"""Pixel row given to lanes that own no pixel (larger than any image height)."""
 MIN_ALPHA_FOR_DEPTH = 1.0e-10
 """Expected depth is ``sum w z / max(alpha, MIN_ALPHA_FOR_DEPTH)`` (gsplat's RGB+ED normalisation)."""
 
 
 @wp.func
 def tile_pixel(block: int, lane: int, blocks_per_tile: int, tile_size: int, tiles_x: int, tiles_per_image: int):
-    """``vec4i(tile, camera, px, py)`` of the pixel owned by this thread."""
+    """``vec4i(tile, camera, px, py)`` of the pixel owned by this thread; a lane past the tile's last pixel gets
+    ``py = OUTSIDE_ROW``, below every image, so it owns no pixel."""
     tile = block // blocks_per_tile
     local = (block - tile * blocks_per_tile) * wp.block_dim() + lane
     camera = tile // tiles_per_image
+    if local >= tile_size * tile_size:
+        return wp.vec4i(tile, camera, 0, OUTSIDE_ROW)
     in_image = tile - camera * tiles_per_image
     ty = in_image // tiles_x
     tx = in_image - ty * tiles_x

@@ -78,6 +78,24 @@ def test_tile_size_and_render_depth_do_not_change_the_image(device):
     assert (rgb16 - rgb8).abs().max() < 1e-12 and (alpha16 - alpha8).abs().max() < 1e-12
 
 
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("tile_size", [20, 32])
+def test_tiles_larger_than_16_match_16_with_gradients(device, tile_size):
+    """On CUDA a tile of more than 256 pixels spans several blocks, the last one partly idle."""
+    scene = make_scene(30, 45, 37, 2, device=device)
+    outputs, grads = [], []
+    for size in (16, tile_size):
+        leaves = [t.detach().clone().requires_grad_() for t in scene[:5]]
+        rgb, depth, alpha, _ = rasterize(*leaves, *scene[5:], 45, 37, tile_size=size)
+        (rgb.sum() + 0.1 * depth.sum() + alpha.sum()).backward()
+        outputs.append((rgb, depth, alpha))
+        grads.append([leaf.grad for leaf in leaves])
+    for a, b in zip(*outputs):
+        assert (a - b).abs().max() < 1e-12
+    for a, b in zip(*grads):
+        assert relative_error(b, a) < 1e-10
+
+
 @pytest.mark.parametrize(
     "argument, sh_degree, mode",
     [("means", None, "classic"), ("quats", None, "antialiased"), ("scales", None, "antialiased"),

@@ -258,12 +258,19 @@ CPU_BATCH = 16
 """Rows a one-pixel CPU block stages per step (CUDA blocks stage tile_size^2 rows, one per lane)."""
 
 
+MAX_CUDA_LANES = 256
+"""Threads per CUDA compositing block: a 16x16 tile is one block; larger tiles take several (a 32x32 block of
+1,024 threads asks for more registers than a multiprocessor has)."""
+
+
 def _composite_launch_shape(device: torch.device, tile_size: int, num_tiles: int) -> tuple[int, int, int, tuple]:
-    """(blocks, block_dim, blocks_per_tile, kernels): one lane per pixel on CUDA, one-lane blocks on the CPU."""
+    """(blocks, block_dim, blocks_per_tile, kernels): one lane per pixel on CUDA (at most MAX_CUDA_LANES a block),
+    one-lane blocks on the CPU."""
     pixels = tile_size * tile_size
-    lanes = pixels if device.type == "cuda" else 1
-    batch = pixels if device.type == "cuda" else CPU_BATCH
-    return num_tiles * (pixels // lanes), lanes, pixels // lanes, raster_composite.composite_kernels(batch)
+    lanes = min(pixels, MAX_CUDA_LANES) if device.type == "cuda" else 1
+    batch = lanes if device.type == "cuda" else CPU_BATCH
+    blocks_per_tile = -(-pixels // lanes)
+    return num_tiles * blocks_per_tile, lanes, blocks_per_tile, raster_composite.composite_kernels(batch)
 
 
 def _composite_common(ranges, sorted_ids, rows, background, settings: _Settings,
