@@ -33,6 +33,7 @@ from .export.files import atomic_output, write_bytes
 from .export.ply import write_ply
 from .export.video import to_uint8_frames
 from .metrics.image import ImageMetrics
+from .model.pretrained import model_id
 from .model.prune import prune_gaussians
 
 DEMO_SEED = 3
@@ -103,7 +104,7 @@ def run_demo(model, config: DemoConfig, device: torch.device) -> dict:
         plot_rate_distortion(rows, out / "rate_distortion.png")
         progress.update(1)
     summary = {
-        "config": asdict(config), "device": str(device), "scene": sample.scene, "context_views": sample.context,
+        "config": asdict(config), "device": str(device), "model_id": model_id(model), "scene": sample.scene, "context_views": sample.context,
         "target_views": sample.target, "image_size": [sample.context_cameras.height, sample.context_cameras.width],
         "lpips": metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1", "rows": rows,
         "ply": {"path": str(out / "scene.ply"), "gaussians": len(kept), "pruned": ply_report.pruned,
@@ -114,6 +115,22 @@ def run_demo(model, config: DemoConfig, device: torch.device) -> dict:
     }
     write_json(out / "summary.json", summary)
     return summary
+
+
+QUALITY_COLUMNS = (("psnr", "PSNR dB", ".2f"), ("ssim", "SSIM", ".3f"), ("lpips_vgg", "LPIPS-VGG", ".3f"),
+                   ("lpips_alex", "LPIPS-Alex", ".3f"))
+
+
+def quality_table(summary: dict) -> str:
+    """Markdown table of the device-independent results of a demo summary: per lambda the bitstream bytes and
+    the target-view quality (LPIPS columns only when the run had the weights). docs/training.md quotes it."""
+    columns = [c for c in QUALITY_COLUMNS if all(c[0] in row for row in summary["rows"])]
+    lines = ["| λ | bytes | " + " | ".join(header for _, header, _ in columns) + " |",
+             "|---|---|" + "---|" * len(columns)]
+    for row in summary["rows"]:
+        cells = [f"{row['lam']:g}", f"{row['bytes']:,d}"] + [format(row[key], spec) for key, _, spec in columns]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def _demo_views(sample: Sample) -> Cameras:
