@@ -11,7 +11,8 @@ Rules every op in this package follows (and that this module implements):
   gradients are returned as fresh tensors by the autograd Functions, never through Warp's grad arrays
   (wrapping a leaf that requires grad would double its gradient, Warp issue #159).
 * Kernels are launched through :func:`launch`, which checks and records a launch once per combination of
-  argument types (and thread) and then replays it with tensors as raw array descriptors (low host overhead).
+  argument types (or per ``layout`` the op names) and thread, and then replays it with tensors as raw array
+  descriptors, calling CPU kernels directly on a persistent argument struct (low host overhead).
 * Non-contiguous inputs are made contiguous deliberately (a copy only when needed) by
   :func:`check_tensor`; wrong shapes or dtypes raise :class:`~codecsplat_warp.errors.InputError`.
 * Finite-value checks (one device-to-host sync each) run unless ``CODECSPLAT_VALIDATE=0`` is set or
@@ -20,16 +21,15 @@ Rules every op in this package follows (and that this module implements):
 
 from __future__ import annotations
 
-import contextlib
 import ctypes
 import functools
 import os
 import threading
-from dataclasses import dataclass
-from typing import Iterator, Sequence
+from typing import Hashable, NamedTuple, Sequence
 
 import torch
 import warp as wp
+from warp._src import context as warp_context  # Launch internals the replay relies on (see _Command)
 from warp._src.types import array_t  # the descriptor type wp.from_torch(return_ctype=True) returns
 
 from .errors import DeviceMismatchError, InputError
@@ -83,16 +83,27 @@ def warp_dtype(dtype: torch.dtype):
         raise InputError(f"dtype {dtype} has no Warp counterpart here") from None
 
 
+_WARP_DEVICES: dict = {}
+"""torch device (or name) -> Warp device, for devices that name one device (``cpu``, ``cuda:N``)."""
+
+
 def warp_device(device: torch.device | str) -> "wp.context.Device":
     """The Warp device that aliases a torch device (``cpu`` or ``cuda:N``)."""
+    cached = _WARP_DEVICES.get(device)
+    if cached is not None:
+        return cached
     init_warp()
-    device = torch.device(device)
-    if device.type == "cuda":
-        index = torch.cuda.current_device() if device.index is None else device.index
-        return wp.get_device(f"cuda:{index}")
-    if device.type == "cpu":
-        return wp.get_device("cpu")
-    raise InputError(f"device {device} is not supported (cpu or cuda only)")
+    resolved = torch.device(device)
+    if resolved.type == "cuda":
+        index = torch.cuda.current_device() if resolved.index is None else resolved.index
+        wdev = wp.get_device(f"cuda:{index}")
+    elif resolved.type == "cpu":
+        wdev = wp.get_device("cpu")
+    else:
+        raise InputError(f"device {resolved} is not supported (cpu or cuda only)")
+    if resolved.type == "cpu" or resolved.index is not None:
+        _WARP_DEVICES[device] = wdev
+    return wdev
 
 
 def resolve_device(name: str | torch.device | None) -> torch.device:
@@ -113,19 +124,35 @@ def available_devices() -> list[torch.device]:
     return [torch.device("cpu")] + [torch.device(f"cuda:{i}") for i in range(torch.cuda.device_count())]
 
 
-@contextlib.contextmanager
-def warp_scope(device: torch.device) -> Iterator["wp.context.Device"]:
+def warp_scope(device: torch.device) -> "_WarpScope":
     """Context in which Warp launches for ``device`` run on torch's current stream of that device.
 
     Yields the Warp device to pass as ``device=`` to every ``wp.launch``. On the CPU this only
     initialises Warp.
     """
-    wdev = warp_device(device)
-    if device.type != "cuda":
-        yield wdev
-        return
-    with wp.ScopedStream(_warp_stream(torch.cuda.current_stream(device)), sync_enter=False):
-        yield wdev
+    return _WarpScope(device)
+
+
+class _WarpScope:
+    """The context manager :func:`warp_scope` returns (a class: cheaper to enter than a generator)."""
+
+    __slots__ = ("device", "stream_scope")
+
+    def __init__(self, device: torch.device):
+        self.device = device
+        self.stream_scope = None
+
+    def __enter__(self) -> "wp.context.Device":
+        wdev = warp_device(self.device)
+        if self.device.type == "cuda":
+            self.stream_scope = wp.ScopedStream(_warp_stream(torch.cuda.current_stream(self.device)), sync_enter=False)
+            self.stream_scope.__enter__()
+        return wdev
+
+    def __exit__(self, exc_type, exc_value, traceback) -> None:
+        if self.stream_scope is not None:
+            self.stream_scope.__exit__(exc_type, exc_value, traceback)
+            self.stream_scope = None
 
 
 _warp_streams: dict[tuple[int, int], "wp.Stream"] = {}
@@ -148,8 +175,7 @@ def to_warp(tensor: torch.Tensor, dtype=None, ndim: int | None = None):
     return wp.from_torch(tensor.detach(), dtype=dtype, requires_grad=False)
 
 
-@dataclass(frozen=True)
-class Grouped:
+class Grouped(NamedTuple):
     """A tensor whose trailing ``inner`` dimensions form Warp vectors or matrices (made by :func:`vectors`
     and :func:`matrices`, consumed by :func:`launch`)."""
 
@@ -159,18 +185,12 @@ class Grouped:
 
 def vectors(tensor: torch.Tensor) -> Grouped:
     """``tensor [..., n]`` as a Warp array of n-vectors of its scalar dtype, for :func:`launch`."""
-    return _grouped(tensor, tuple(tensor.shape[-1:]))
+    return Grouped(tensor, tuple(tensor.shape[-1:]))
 
 
 def matrices(tensor: torch.Tensor) -> Grouped:
     """``tensor [..., r, c]`` as a Warp array of r x c matrices of its scalar dtype, for :func:`launch`."""
-    return _grouped(tensor, tuple(tensor.shape[-2:]))
-
-
-def _grouped(tensor: torch.Tensor, inner: tuple[int, ...]) -> Grouped:
-    if tensor.dim() <= len(inner):
-        raise InputError(f"a tensor of shape {tuple(tensor.shape)} has no array dimension left for {inner} elements")
-    return Grouped(tensor, inner)
+    return Grouped(tensor, tuple(tensor.shape[-2:]))
 
 
 _RESOLVED_OVERLOADS: dict[tuple, tuple] = {}
@@ -183,7 +203,14 @@ _thread_state = threading.local()
 
 
 def launch(
-    kernel, dim, args: Sequence, device, *, adj_args: Sequence | None = None, block_dim: int | None = None
+    kernel,
+    dim,
+    args: Sequence,
+    device,
+    *,
+    adj_args: Sequence | None = None,
+    block_dim: int | None = None,
+    layout: Hashable = None,
 ) -> None:
     """Launch a Warp kernel on tensors zero-copy, with Warp's per-launch argument processing paid once.
 
@@ -191,9 +218,10 @@ def launch(
     trailing shape of every tensor, type of every scalar) on a device, in a thread, wraps the tensors as
     ``wp.array`` and goes through all of Warp's argument checks (instantiating the concrete overload of a
     generic kernel), then records the launch as a ``wp.Launch`` command (``record_cmd=True``). Later launches
-    with the same types replay that command: every tensor becomes a raw array descriptor that holds no
-    reference to it (the command keeps no tensor alive), scalars are written in place, and the launch
-    dimensions are updated when they change. Nothing runs when a launch dimension is 0.
+    with the same types replay that command: every tensor's data pointer is written into the recorded array
+    descriptor (which holds no reference to it: the command keeps no tensor alive), its shape only when it
+    changed, scalars are written in place, the launch dimensions are updated when they change, and the kernel
+    is called (on the CPU directly on one persistent argument struct). Nothing runs when a launch dimension is 0.
 
     Args:
         kernel: a ``@wp.kernel``, generic (``typing.Any`` annotations) or concrete.
@@ -205,22 +233,30 @@ def launch(
         adj_args: given for an adjoint launch (``adjoint=True``): the adjoint of every argument, in the
             same forms (None for arrays without gradient, zero scalars for scalars).
         block_dim: lanes per block of a tiled kernel (``wp.launch_tiled``); None for a plain launch.
+        layout: optional hashable that determines the type of every argument (e.g. the dtypes an op
+            instantiates the kernel for); given, the per-argument type keys are not computed, which saves
+            host time on every launch. The caller guarantees that launches of ``kernel`` with equal layouts
+            pass arguments of equal types (a tensor of another dtype or rank would be misread).
 
     Raises:
-        InputError: a tensor argument is not contiguous.
+        InputError: a tensor argument is not contiguous, or has no dimension left outside its vector or
+            matrix elements.
     """
     dims = (dim,) if isinstance(dim, int) else tuple(dim)
     if 0 in dims:
         return
     adjoint = adj_args is not None
     adj_args = adj_args or ()
-    key = (kernel, adjoint, block_dim, device.alias, *map(_type_key, args), *map(_type_key, adj_args))
+    explicit = layout is not None
+    if not explicit:
+        layout = (*map(_type_key, args), *map(_type_key, adj_args))
+    key = (kernel, adjoint, block_dim, device.alias, explicit, layout)
     commands = _thread_commands()
     command = commands.get(key)
     if command is None:
         commands[key] = _Command.first_launch(kernel, dims, args, adj_args, adjoint, block_dim, device)
     else:
-        command.replay(dims, args, adj_args)
+        command.replay(dims, (*args, *adj_args) if adjoint else args)
 
 
 def _thread_commands() -> dict:
@@ -237,19 +273,39 @@ class _Command:
     first) and of adjoint argument ``i`` after all forward ones. Both launch paths read those objects when
     launched (the CPU path copies them into its argument struct, the CUDA path passes their addresses), so a
     replay updates them in place: the data pointer of each array descriptor (shape and strides only when
-    they change) and the value of each scalar.
+    they change) and the value of each scalar. On the CPU those objects are made views of one persistent
+    argument struct per direction (:func:`_bind_cpu_arguments`), which the kernel entry point is called with.
 
     Attributes:
         recorded: the ``wp.Launch``.
-        slots: per forward then adjoint argument, the :class:`_ArraySlot`, :class:`_ScalarSlot` or
-            :class:`_PackedSlot` that writes it, or None for a None argument (its null array stays).
+        arrays: ``(position, descriptor, scalar bytes)`` of every tensor argument, positions counting the
+            forward then the adjoint arguments; shapes: the tensor shape each descriptor last took.
+        scalars: ``(position, ctypes value, is a Warp scalar)`` of every scalar argument.
+        packed: ``(position, index, adjoint)`` of every argument written through Warp's own argument packing
+            (half-precision scalars, vectors, structs).
+        labels: kernel argument name of every position (for errors).
         dims: the launch dimensions last set (without the lane dimension of a tiled launch).
         lanes: ``(block_dim,)``, the lane dimension ``wp.launch_tiled`` appends, or ``()``.
+        invoke: runs the command as it stands.
     """
 
-    def __init__(self, recorded, slots: list, dims: tuple, tiled: bool):
+    def __init__(self, recorded, values: Sequence, dtypes: Sequence, num_args: int, dims: tuple, tiled: bool):
         self.recorded = recorded
-        self.slots = slots
+        arg_specs = recorded.kernel.adj.args
+        self.labels = [arg_specs[j % num_args].label for j in range(len(values))]
+        self.packed = [(j, j % num_args, j >= num_args) for j, (value, dtype) in enumerate(zip(values, dtypes))
+                       if _written_by_warp(value, dtype, arg_specs[j % num_args].type)]  # fmt: skip
+        self.invoke = recorded.launch
+        if recorded.device.is_cpu and recorded.block_dim <= 1 and not self.packed:
+            self.invoke = _CpuInvoker(recorded)
+        params = recorded.params
+        self.arrays = [(j, params[1 + j], ctypes.sizeof(dtype._type_)) for j, dtype in enumerate(dtypes)
+                       if dtype is not None]  # fmt: skip
+        self.shapes = [_tensor(values[j]).shape for j, _, _ in self.arrays]
+        packed_positions = {j for j, _, _ in self.packed}
+        self.scalars = [(j, params[1 + j], not isinstance(value, (int, float)))
+                        for j, (value, dtype) in enumerate(zip(values, dtypes))
+                        if dtype is None and value is not None and j not in packed_positions]  # fmt: skip
         self.dims = dims
         self.lanes = (recorded.block_dim,) if tiled else ()
 
@@ -266,84 +322,108 @@ class _Command:
                       for a, d, i in zip((*args, *adj_args), dtypes, positions)]  # fmt: skip
             recorded = _launch_checked(concrete, dims, packed[: len(args)], packed[len(args):], adjoint, block_dim,
                                        device, record_cmd=True)  # fmt: skip
-        slots = [_slot(recorded, a, d, i, j >= len(args), recorded.params[1 + j])
-                 for j, (a, d, i) in enumerate(zip((*args, *adj_args), dtypes, positions))]  # fmt: skip
-        return cls(recorded, slots, dims, tiled=block_dim is not None)
+        return cls(recorded, (*args, *adj_args), dtypes, len(args), dims, tiled=block_dim is not None)
 
-    def replay(self, dims: tuple, args: Sequence, adj_args: Sequence) -> None:
-        """Write the new arguments (and dimensions) into the recorded command and launch it."""
+    def replay(self, dims: tuple, values: Sequence) -> None:
+        """Write the new arguments (forward then adjoint ones) and dimensions into the command and launch it."""
         if dims != self.dims:
             self.recorded.set_dim((*dims, *self.lanes))
             self.dims = dims
-        for slot, value in zip(self.slots, (*args, *adj_args)):
-            if slot is not None:
-                slot.write(value)
-        self.recorded.launch()
+        shapes = self.shapes
+        for k, (position, descriptor, scalar_bytes) in enumerate(self.arrays):
+            tensor = values[position]
+            if tensor.__class__ is Grouped:
+                tensor = tensor.tensor
+            if not tensor.is_contiguous():
+                raise InputError(f"tensor for argument {self.labels[position]!r} of kernel {self.recorded.kernel.key} "
+                                 "must be contiguous")  # fmt: skip
+            descriptor.data = tensor.data_ptr()
+            shape = tensor.shape
+            if shape != shapes[k]:
+                strides = tensor.stride()
+                for d in range(descriptor.ndim):
+                    descriptor.shape[d] = shape[d]
+                    descriptor.strides[d] = strides[d] * scalar_bytes
+                shapes[k] = shape
+        for position, target, warp_scalar in self.scalars:
+            value = values[position]
+            target.value = value.value if warp_scalar else value
+        for position, index, adjoint in self.packed:
+            self.recorded.set_param_at_index(index, values[position], adjoint)
+        self.invoke()
 
 
-class _ArraySlot:
-    """Writes a tensor (or :class:`Grouped`) into a recorded array descriptor."""
+class _CpuInvoker:
+    """Runs a recorded CPU launch by calling its kernel entry point on persistent argument structs, instead of
+    ``wp.Launch.launch``, which builds and fills a fresh struct on every launch (Warp's ``invoke``). Under an
+    active Warp CPU graph capture it defers to ``wp.Launch.launch`` so that the capture records the launch."""
 
-    __slots__ = ("descriptor", "scalar_bytes", "shape", "label", "kernel_key")
+    __slots__ = ("recorded", "entry", "structs")
 
-    def __init__(self, descriptor: array_t, scalar_bytes: int, shape: torch.Size, label: str, kernel_key: str):
-        self.descriptor, self.scalar_bytes, self.shape = descriptor, scalar_bytes, shape
-        self.label, self.kernel_key = label, kernel_key
+    def __init__(self, recorded):
+        self.recorded = recorded
+        self.entry = recorded.hooks.backward if recorded.adjoint else recorded.hooks.forward
+        self.structs = _bind_cpu_arguments(recorded)
 
-    def write(self, arg) -> None:
-        tensor = arg.tensor if isinstance(arg, Grouped) else arg
-        if not tensor.is_contiguous():
-            raise InputError(f"tensor for argument {self.label!r} of kernel {self.kernel_key} must be contiguous")
-        descriptor = self.descriptor
-        descriptor.data = tensor.data_ptr()
-        shape = tensor.shape
-        if shape != self.shape:
-            strides = tensor.stride()
-            for d in range(descriptor.ndim):
-                descriptor.shape[d] = shape[d]
-                descriptor.strides[d] = strides[d] * self.scalar_bytes
-            self.shape = shape
+    def __call__(self) -> None:
+        recorded = self.recorded
+        if warp_context._get_apic_capture_for_device(recorded.device) is not None:  # Launch.launch's own check
+            recorded.launch()
+        else:
+            self.entry(ctypes.byref(recorded.bounds), *self.structs)
 
 
-class _ScalarSlot:
-    """Writes a Python number, or the ``.value`` of a Warp scalar, into a recorded ctypes scalar."""
-
-    __slots__ = ("ctype", "warp_scalar")
-
-    def __init__(self, ctype, warp_scalar: bool):
-        self.ctype, self.warp_scalar = ctype, warp_scalar
-
-    def write(self, value) -> None:
-        self.ctype.value = value.value if self.warp_scalar else value
-
-
-class _PackedSlot:
-    """Writes any other value through Warp's own argument packing."""
-
-    __slots__ = ("recorded", "index", "adjoint")
-
-    def __init__(self, recorded, index: int, adjoint: bool):
-        self.recorded, self.index, self.adjoint = recorded, index, adjoint
-
-    def write(self, value) -> None:
-        self.recorded.set_param_at_index(self.index, value, self.adjoint)
+def _bind_cpu_arguments(recorded) -> list:
+    """Copy the packed arguments of a recorded CPU launch into one ctypes struct per direction (forward, and
+    adjoint for an adjoint launch), laid out as Warp's CPU entry points take them, and replace every
+    ``recorded.params`` entry by a view of its field, so that writes to the params reach the structs.
+    Returns ``ctypes.byref`` of the structs (each keeps its struct alive)."""
+    specs = recorded.kernel.adj.args
+    firsts = (1, 1 + len(specs)) if recorded.adjoint else (1,)
+    refs = []
+    for first in firsts:
+        fields = [(spec.label, type(recorded.params[first + i])) for i, spec in enumerate(specs)]
+        struct_type = type("ArgsStruct", (ctypes.Structure,), {"_fields_": fields})
+        struct = struct_type()
+        for i, (name, ctype) in enumerate(fields):
+            setattr(struct, name, recorded.params[first + i])
+            recorded.params[first + i] = ctype.from_buffer(struct, getattr(struct_type, name).offset)
+        refs.append(ctypes.byref(struct))
+    return refs
 
 
 _HALF_TYPES = (wp.float16, wp.bfloat16)
 
 
-def _slot(recorded, arg, dtype, position: int, adjoint: bool, param):
-    """The slot writing argument ``position`` (adjoint or not) of a recorded launch (see :class:`_Command`)."""
-    kernel = recorded.kernel
-    if dtype is not None:
-        tensor = arg.tensor if isinstance(arg, Grouped) else arg
-        return _ArraySlot(param, ctypes.sizeof(dtype._type_), tensor.shape, kernel.adj.args[position].label,
-                          kernel.key)  # fmt: skip
-    if arg is None:
-        return None
-    if kernel.adj.args[position].type in _HALF_TYPES or not wp.types.type_is_scalar(type(arg)):
-        return _PackedSlot(recorded, position, adjoint)
-    return _ScalarSlot(param, warp_scalar=not isinstance(arg, (int, float)))
+def _written_by_warp(value, dtype, arg_type) -> bool:
+    """Whether a non-array argument is packed by Warp on every replay (half scalars, vectors, structs...)."""
+    if dtype is not None or value is None:
+        return False
+    return arg_type in _HALF_TYPES or not wp.types.type_is_scalar(type(value))
+
+
+def _tensor(arg) -> torch.Tensor:
+    return arg.tensor if isinstance(arg, Grouped) else arg
+
+
+def radix_sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_bit: int) -> None:
+    """Sort ``keys[:count]`` (int64) and ``values[:count]`` (int32) in place by key bits ``[0, end_bit)``.
+
+    ``wp.utils.radix_sort_pairs`` on the tensors' memory, without wrapping them as ``wp.array`` (the native call
+    that function makes); both tensors are contiguous with at least ``2 * count`` elements, the second half being
+    scratch. On CUDA it runs on Warp's current stream: call it inside :func:`warp_scope`.
+
+    Raises:
+        InputError: wrong dtype, too short or not contiguous.
+    """
+    if count == 0 or end_bit == 0:
+        return
+    for name, tensor, dtype in (("keys", keys, torch.int64), ("values", values, torch.int32)):
+        if tensor.dtype != dtype or tensor.numel() < 2 * count or not tensor.is_contiguous():
+            raise InputError(f"radix sort {name} must be contiguous {dtype} with at least {2 * count} elements")
+    core = warp_context.runtime.core
+    sort = core.wp_radix_sort_pairs_int64_device if keys.is_cuda else core.wp_radix_sort_pairs_int64_host
+    sort(keys.data_ptr(), values.data_ptr(), count, 0, end_bit, 4)
 
 
 def row_chunks(rows: int, device: torch.device) -> list[tuple[int, int]]:
@@ -391,6 +471,10 @@ def _element_dtype(arg):
     if isinstance(arg, torch.Tensor):
         return warp_dtype(arg.dtype)
     if isinstance(arg, Grouped):
+        if arg.tensor.dim() <= len(arg.inner):
+            raise InputError(
+                f"a tensor of shape {tuple(arg.tensor.shape)} has no array dimension left for {arg.inner} elements"
+            )
         scalar = warp_dtype(arg.tensor.dtype)
         if len(arg.inner) == 1:
             return wp.types.vector(arg.inner[0], scalar)
@@ -412,7 +496,7 @@ def _resolve_overload(kernel, adjoint: bool, args: Sequence, adj_args: Sequence)
 
 
 def _tensor_of(arg, position: int, kernel) -> torch.Tensor:
-    tensor = arg.tensor if isinstance(arg, Grouped) else arg
+    tensor = _tensor(arg)
     if not tensor.is_contiguous():
         name = kernel.adj.args[position].label
         raise InputError(f"tensor for argument {name!r} of kernel {kernel.key} must be contiguous")
@@ -451,14 +535,16 @@ def common_device(**tensors: torch.Tensor | None) -> torch.device:
         DeviceMismatchError: naming each argument and its device when they differ.
         InputError: when no tensor is given.
     """
-    present = {name: t for name, t in tensors.items() if t is not None}
-    if not present:
+    first = None
+    for tensor in tensors.values():
+        if tensor is not None:
+            if first is None:
+                first = tensor.device
+            elif tensor.device != first:
+                listing = ", ".join(f"{n} on {t.device}" for n, t in tensors.items() if t is not None)
+                raise DeviceMismatchError(f"arguments are on different devices: {listing}")
+    if first is None:
         raise InputError("no tensor argument to take the device from")
-    devices = {name: t.device for name, t in present.items()}
-    first = next(iter(devices.values()))
-    if any(d != first for d in devices.values()):
-        listing = ", ".join(f"{n} on {d}" for n, d in devices.items())
-        raise DeviceMismatchError(f"arguments are on different devices: {listing}")
     return first
 
 

@@ -1,5 +1,6 @@
 """codecsplat_warp.device.launch, which the rasterizer relies on for a low host overhead: a launch is checked and
-recorded once per argument types and thread, then replayed with new tensors, shapes and scalars."""
+recorded once per argument types (or caller-given layout) and thread, then replayed with new tensors, shapes and
+scalars; and device.radix_sort_pairs, the sort the rasterizer calls on tensors directly."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import torch
 import warp as wp
 from conftest import DEVICES
 
-from codecsplat_warp.device import launch, vectors, warp_scope
+from codecsplat_warp.device import launch, radix_sort_pairs, vectors, warp_scope
 from codecsplat_warp.errors import InputError
 
 
@@ -25,11 +26,12 @@ def _scaled_sum(points: wp.array(dtype=Any), weights: wp.array(dtype=Any), facto
     out[i] = factor * weights[i] * (p[0] + p[1] + p[2]) + type(factor)(float(offset * points.shape[0]))
 
 
-def _run(points: torch.Tensor, weights: torch.Tensor, factor: float, offset: int) -> torch.Tensor:
+def _run(points: torch.Tensor, weights: torch.Tensor, factor: float, offset: int, layout=None) -> torch.Tensor:
     out = torch.empty_like(weights)
     scalar = wp.float64 if points.dtype == torch.float64 else wp.float32
     with warp_scope(points.device) as wdev:
-        launch(_scaled_sum, points.shape[0], [vectors(points), weights, scalar(factor), offset, out], wdev)
+        launch(_scaled_sum, points.shape[0], [vectors(points), weights, scalar(factor), offset, out], wdev,
+               layout=layout)  # fmt: skip
     return out
 
 
@@ -39,12 +41,21 @@ def _expected(points, weights, factor, offset):
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_replays_follow_new_tensors_shapes_and_scalars(device, dtype):
+@pytest.mark.parametrize("explicit_layout", [False, True])
+def test_replays_follow_new_tensors_shapes_and_scalars(device, dtype, explicit_layout):
     g = torch.Generator().manual_seed(0)
+    layout = ("scaled_sum", dtype) if explicit_layout else None
     for n, factor, offset in [(5, 2.0, 1), (5, -0.5, 3), (17, 3.0, -2), (1, 1.5, 0), (17, 0.25, 7)]:
         points = torch.rand(n, 3, generator=g, dtype=dtype).to(device)
         weights = torch.rand(n, generator=g, dtype=dtype).to(device)
-        torch.testing.assert_close(_run(points, weights, factor, offset), _expected(points, weights, factor, offset))
+        got = _run(points, weights, factor, offset, layout)
+        torch.testing.assert_close(got, _expected(points, weights, factor, offset))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_vectors_of_a_tensor_without_array_dimension_raise(device):
+    with pytest.raises(InputError, match="no array dimension left"):
+        _run(torch.rand(3, device=device), torch.rand(1, device=device), 1.0, 0)
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -90,3 +101,25 @@ def test_threads_replay_their_own_launches(device):
     for thread in threads:
         thread.join()
     assert not errors and len(results) == 4
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("count, end_bit", [(1, 5), (37, 12), (1000, 40), (513, 63)])
+def test_radix_sort_pairs_sorts_like_a_stable_sort(device, count, end_bit):
+    g = torch.Generator().manual_seed(count)
+    keys = torch.randint(0, 2 ** min(end_bit, 62), (2 * count,), generator=g, dtype=torch.int64)
+    keys[: count // 3] = keys[count // 3 : 2 * (count // 3)]  # ties: the sort must keep their order
+    values = torch.arange(2 * count, dtype=torch.int32)
+    want_keys, order = torch.sort(keys[:count], stable=True)
+    keys, values = keys.to(device), values.to(device)
+    with warp_scope(keys.device):
+        radix_sort_pairs(keys, values, count, end_bit)
+    assert torch.equal(keys[:count].cpu(), want_keys)
+    assert torch.equal(values[:count].cpu(), order.to(torch.int32))
+
+
+def test_radix_sort_pairs_rejects_short_or_mistyped_buffers():
+    with pytest.raises(InputError, match="keys"):
+        radix_sort_pairs(torch.zeros(3, dtype=torch.int64), torch.zeros(4, dtype=torch.int32), 2, 8)
+    with pytest.raises(InputError, match="values"):
+        radix_sort_pairs(torch.zeros(4, dtype=torch.int64), torch.zeros(4, dtype=torch.int64), 2, 8)

@@ -1,7 +1,7 @@
 """Differentiable 3D Gaussian splat rasterization on Warp kernels (CPU and CUDA), close to gsplat's API.
 
 Pipeline (one kernel family per stage, see ``codecsplat_warp.kernels.raster_*``), all inside one autograd
-Function so that a call costs few host operations:
+Function (or, when nothing needs a gradient, called without one) so that a call costs few host operations:
 
 1. Camera preparation on one thread: validation flags of the cameras and background, the cameras cast to the
    Gaussians' dtype and made camera-relative (float32: the world is translated by the mean camera centre,
@@ -10,8 +10,8 @@ Function so that a call costs few host operations:
    pixel radii, tiles touched and input-validation flags.
 3. Prefix sum of the tile counts; ONE host sync reads the intersection count and the flags (adjacent in one
    int64 buffer), then the memory budget is checked before anything is allocated for sorting.
-4. One 64-bit key ``[camera | tile | depth bits]`` per intersection, ``wp.utils.radix_sort_pairs`` on the
-   used bits only, per-tile ranges from the sorted keys.
+4. One 64-bit key ``[camera | tile | depth bits]`` per intersection, Warp's radix sort
+   (:func:`~codecsplat_warp.device.radix_sort_pairs`) on the used bits only, per-tile ranges from the sorted keys.
 5. Front-to-back compositing per tile (rows staged in shared memory; expected depth normalised in the
    kernel), and a hand-written back-to-front backward. Projection gradients come from an adjoint launch of
    its straight-line twin kernel.
@@ -32,8 +32,8 @@ import torch
 import warp as wp
 
 from ..device import (
-    FLOAT_DTYPES, check_finite, check_tensor, common_device, launch, matrices, to_warp, validation_enabled, vectors,
-    warp_dtype, warp_scope,
+    FLOAT_DTYPES, check_finite, check_tensor, common_device, launch, matrices, radix_sort_pairs, validation_enabled,
+    vectors, warp_dtype, warp_scope,
 )  # fmt: skip
 from ..errors import InputError, RasterMemoryError
 from ..kernels import raster_composite, raster_project, raster_tiles
@@ -89,8 +89,15 @@ class RasterMeta:
         return (self.radii > 0).any(dim=-1).sum(dim=1)
 
 
-@dataclass(frozen=True)
-class _Settings:
+class _Settings(NamedTuple):
+    """The checked settings of one call, and the tile grid they imply.
+
+    Attributes:
+        width, height: image size in pixels; near, far: depth range; sh_degree: -1 for RGB colours;
+        antialiased, render_depth: flags; tile_size: tile edge in pixels; min_transmittance: early-stop threshold;
+        tiles_x, tiles_y: tiles per image row and column; tile_bits: bits of a tile index in the sort key.
+    """
+
     width: int
     height: int
     near: float
@@ -100,14 +107,9 @@ class _Settings:
     render_depth: bool
     tile_size: int
     min_transmittance: float
-
-    @property
-    def tiles_x(self) -> int:
-        return math.ceil(self.width / self.tile_size)
-
-    @property
-    def tiles_y(self) -> int:
-        return math.ceil(self.height / self.tile_size)
+    tiles_x: int
+    tiles_y: int
+    tile_bits: int
 
 
 class _Cameras(NamedTuple):
@@ -123,24 +125,30 @@ class _Cameras(NamedTuple):
     origin: torch.Tensor
 
 
-def _prepare_cameras(viewmats, Ks, background, dtype: torch.dtype, flags: torch.Tensor, wdev) -> _Cameras:
+def _rows_and_cameras(means: torch.Tensor, num_cameras: int) -> tuple[torch.Tensor, _Cameras]:
+    """Uninitialised projected rows ``[B*N, 10]`` and prepared cameras (:class:`_Cameras`) in the dtype of ``means``
+    ``[N,3]``, views of one buffer."""
+    B, size = num_cameras, num_cameras * means.shape[0] * raster_project.ROW_WIDTH
+    rows, viewmats, Ks, origin = means.new_empty(size + 25 * B + 3).split_with_sizes((size, 16 * B, 9 * B, 3))
+    return rows.view(-1, raster_project.ROW_WIDTH), _Cameras(viewmats.view(B, 4, 4), Ks.view(B, 3, 3), origin)
+
+
+def _prepare_cameras(viewmats, Ks, background, cameras: _Cameras, flags: torch.Tensor, wdev) -> None:
     """Launch :func:`~codecsplat_warp.kernels.raster_project.prepare_cameras`; it also initialises ``flags``.
 
     Args:
         viewmats: ``[B,4,4]``, Ks: ``[B,3,3]`` as given (float32 or float64); background: ``[B,3]`` or ``[0,3]``.
-        dtype: the Gaussians' dtype; float32 Gaussians are made camera-relative.
+        cameras: the outputs, in the Gaussians' dtype; float32 Gaussians are made camera-relative.
         flags: ``[NUM_FLAGS]`` int64 validation counters.
     """
-    B = viewmats.shape[0]
-    buffer = torch.empty(B * 25 + 3, dtype=dtype, device=viewmats.device)
-    cameras = _Cameras(buffer[: 16 * B].view(B, 4, 4), buffer[16 * B : 25 * B].view(B, 3, 3), buffer[25 * B :])
+    dtype = cameras.origin.dtype
     launch(
         raster_project.prepare_cameras,
         1,
         [viewmats, Ks, background, int(dtype != torch.float64), cameras.viewmats, cameras.Ks, cameras.origin, flags],
         wdev,
+        layout=(viewmats.dtype, Ks.dtype, dtype),
     )
-    return cameras
 
 
 def _projection_inputs(means, quats, scales, opacities, coeffs, cameras: _Cameras) -> list:
@@ -149,16 +157,23 @@ def _projection_inputs(means, quats, scales, opacities, coeffs, cameras: _Camera
             matrices(cameras.Ks), cameras.origin]  # fmt: skip
 
 
-def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, settings: _Settings,
-             tile_counts: torch.Tensor, flags: torch.Tensor, wdev) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
-    """Projected rows ``[B*N, 10]`` and radii ``[B*N, 2]`` int32; fills ``tile_counts`` ``[B*N]`` and ``flags``."""
-    B, N = cameras.viewmats.shape[0], means.shape[0]
-    scalar = warp_dtype(means.dtype)
-    splats = torch.empty(B * N, raster_project.ROW_WIDTH, dtype=means.dtype, device=means.device)
-    radii = torch.empty(B * N, 2, dtype=torch.int32, device=means.device)
+_LOW_PASS = {dtype: warp_dtype(dtype)(LOW_PASS_PX2) for dtype in FLOAT_DTYPES}
+"""LOW_PASS_PX2 as a Warp scalar of each float dtype."""
+
+_ZERO = {dtype: warp_dtype(dtype)(0.0) for dtype in FLOAT_DTYPES}
+"""0 as a Warp scalar of each float dtype (the adjoint of a scalar argument)."""
+
+
+def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, settings: _Settings, splats: torch.Tensor,
+             tile_counts: torch.Tensor, flags: torch.Tensor, wdev) -> torch.Tensor:  # fmt: skip
+    """Fill the projected rows ``splats [B*N, 10]``, ``tile_counts [B*N]`` and ``flags``; return radii ``[B*N, 2]``
+    int32."""
+    dtype = means.dtype
+    scalar = warp_dtype(dtype)
+    radii = tile_counts.new_empty(splats.shape[0], 2, dtype=torch.int32)
     launch(
         raster_project.project_gaussians,
-        (B, N),
+        (cameras.viewmats.shape[0], means.shape[0]),
         [
             *_projection_inputs(means, quats, scales, opacities, coeffs, cameras),
             settings.sh_degree,
@@ -166,7 +181,7 @@ def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, setting
             settings.height,
             scalar(settings.near),
             scalar(settings.far),
-            scalar(LOW_PASS_PX2),
+            _LOW_PASS[dtype],
             int(settings.antialiased),
             settings.tile_size,
             settings.tiles_x,
@@ -177,8 +192,9 @@ def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, setting
             flags,
         ],
         wdev,
+        layout=dtype,
     )
-    return splats, radii
+    return radii
 
 
 def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, cameras: _Cameras, radii,
@@ -186,23 +202,13 @@ def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, camera
     """Gradients of means ``[N,3]``, quats ``[N,4]``, scales ``[N,3]``, opacities ``[N]`` and coeffs ``[N,K,3]``
     from the gradient of the projected rows ``[B*N, 10]`` (views of one zero-initialised buffer)."""
     B, (N, K) = cameras.viewmats.shape[0], coeffs.shape[:2]
-    shapes = [(N, 3), (N, 4), (N, 3), (N,), (N, K, 3)]
-    buffer = torch.zeros(N * (11 + 3 * K), dtype=means.dtype, device=means.device)
-    grads = [part.view(shape) for part, shape in zip(buffer.split([math.prod(s) for s in shapes]), shapes)]
-    scalar = warp_dtype(means.dtype)
-    adj_args = [
-        *(vectors(g) if g.dim() > 1 else g for g in grads),
-        None,
-        None,
-        None,
-        None,
-        0,
-        0,
-        0,
-        scalar(0.0),
-        0,
-        grad_rows,
-    ]
+    dtype = means.dtype
+    sizes = (3 * N, 4 * N, 3 * N, N, 3 * K * N)
+    flat = means.new_zeros(sum(sizes)).split_with_sizes(sizes)
+    grads = [flat[0].view(N, 3), flat[1].view(N, 4), flat[2].view(N, 3), flat[3], flat[4].view(N, K, 3)]
+    zero = _ZERO[dtype]
+    adj_args = [vectors(grads[0]), vectors(grads[1]), vectors(grads[2]), grads[3], vectors(grads[4]), None, None, None,
+                None, 0, 0, 0, zero, 0, grad_rows]  # fmt: skip
     launch(
         raster_project.project_gaussians_differentiable,
         (B, N),
@@ -212,12 +218,13 @@ def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, camera
             settings.sh_degree,
             settings.width,
             settings.height,
-            scalar(LOW_PASS_PX2),
+            _LOW_PASS[dtype],
             int(settings.antialiased),
             torch.empty_like(grad_rows),
         ],
         wdev,
         adj_args=adj_args,
+        layout=dtype,
     )
     return grads
 
@@ -228,24 +235,27 @@ class _ProjectGaussians(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, coeffs, viewmats, Ks, settings: _Settings):
         B, N = viewmats.shape[0], means.shape[0]
-        ints = torch.empty(B * N + raster_project.NUM_FLAGS, dtype=torch.int64, device=means.device)
-        tile_counts, flags = ints[: B * N], ints[B * N :]
+        tile_counts, flags = means.new_empty(B * N + raster_project.NUM_FLAGS, dtype=torch.int64).split_with_sizes(
+            (B * N, raster_project.NUM_FLAGS)
+        )
+        splats, cameras = _rows_and_cameras(means, B)
         with warp_scope(means.device) as wdev:
-            cameras = _prepare_cameras(viewmats, Ks, _absent(means, 3), means.dtype, flags, wdev)
-            splats, radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, tile_counts, flags,
-                                     wdev)  # fmt: skip
+            _prepare_cameras(viewmats, Ks, _absent(means, 3), cameras, flags, wdev)
+            radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, flags,
+                             wdev)  # fmt: skip
         ctx.settings = settings
-        ctx.save_for_backward(means, quats, scales, opacities, coeffs, *cameras, radii)
+        ctx.cameras = cameras
+        ctx.save_for_backward(means, quats, scales, opacities, coeffs, radii)
         ctx.mark_non_differentiable(radii, flags)
         return splats.view(B, N, raster_project.ROW_WIDTH), radii.view(B, N, 2), flags
 
     @staticmethod
     def backward(ctx, grad_splats, _grad_radii, _grad_flags):
-        means, quats, scales, opacities, coeffs, viewmats, Ks, origin, radii = ctx.saved_tensors
+        means, quats, scales, opacities, coeffs, radii = ctx.saved_tensors
         grad_rows = grad_splats.reshape(-1, raster_project.ROW_WIDTH).contiguous()
         with warp_scope(means.device) as wdev:
-            grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs,
-                                      _Cameras(viewmats, Ks, origin), radii, ctx.settings, wdev)  # fmt: skip
+            grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs, ctx.cameras, radii,
+                                      ctx.settings, wdev)  # fmt: skip
         return (*grads, None, None, None)
 
 
@@ -263,96 +273,139 @@ MAX_CUDA_LANES = 256
 1,024 threads asks for more registers than a multiprocessor has)."""
 
 
-def _composite_launch_shape(device: torch.device, tile_size: int, num_tiles: int) -> tuple[int, int, int, tuple]:
-    """(blocks, block_dim, blocks_per_tile, kernels): one lane per pixel on CUDA (at most MAX_CUDA_LANES a block),
-    one-lane blocks on the CPU."""
+class _CompositeLaunch(NamedTuple):
+    """How both compositing kernels are launched: ``blocks`` blocks of ``block_dim`` lanes, ``blocks_per_tile`` per
+    tile, ``kernels`` = (forward, backward)."""
+
+    blocks: int
+    block_dim: int
+    blocks_per_tile: int
+    kernels: tuple
+
+
+def _composite_launch(device: torch.device, tile_size: int, num_tiles: int) -> _CompositeLaunch:
+    """One lane per pixel on CUDA (at most MAX_CUDA_LANES a block), one-lane blocks on the CPU."""
     pixels = tile_size * tile_size
     lanes = min(pixels, MAX_CUDA_LANES) if device.type == "cuda" else 1
     batch = lanes if device.type == "cuda" else CPU_BATCH
     blocks_per_tile = -(-pixels // lanes)
-    return num_tiles * blocks_per_tile, lanes, blocks_per_tile, raster_composite.composite_kernels(batch)
+    kernels = raster_composite.composite_kernels(batch)
+    return _CompositeLaunch(num_tiles * blocks_per_tile, lanes, blocks_per_tile, kernels)
 
 
-def _composite_common(ranges, sorted_ids, rows, background, settings: _Settings,
-                      device) -> tuple[list, int, int, tuple]:  # fmt: skip
-    """(leading arguments shared by both compositing kernels, blocks, block_dim, kernels)."""
-    blocks, block_dim, blocks_per_tile, kernels = _composite_launch_shape(device, settings.tile_size, len(ranges))
-    args = [ranges, sorted_ids, rows, background, settings.width, settings.height, settings.tile_size,
+def _composite_args(ranges, sorted_ids, rows, background, settings: _Settings, blocks_per_tile: int) -> list:
+    """The leading arguments shared by both compositing kernels."""
+    return [ranges, sorted_ids, rows, background, settings.width, settings.height, settings.tile_size,
             settings.tiles_x, settings.tiles_x * settings.tiles_y, blocks_per_tile]  # fmt: skip
-    return args, blocks, block_dim, kernels
+
+
+class _Saved(NamedTuple):
+    """What the backward of a forward render needs besides its inputs (kept on the autograd context).
+
+    Attributes:
+        colors_or_black: ``[B,3]`` background or ``[0,3]``; cameras: the prepared cameras; splats: projected rows
+        ``[B*N, 10]``; radii: ``[B*N, 2]`` int32; ranges: ``[B*tiles, 2]`` int32; sorted_ids: ``[count]`` int32; state: ``[P,2]`` (final T,
+        accumulated depth); last: ``[P]`` int32; composite: the compositing launch.
+    """
+
+    colors_or_black: torch.Tensor
+    cameras: _Cameras
+    splats: torch.Tensor
+    radii: torch.Tensor
+    ranges: torch.Tensor
+    sorted_ids: torch.Tensor
+    state: torch.Tensor
+    last: torch.Tensor
+    composite: _CompositeLaunch
+
+
+def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, settings: _Settings,
+            max_intersection_bytes: int) -> tuple[tuple, _Saved]:  # fmt: skip
+    """The forward render on checked inputs: ``((rgb [B,H,W,3], depth [B,H,W,1] or None, alpha [B,H,W,1],
+    radii [B,N,2] int32, intersection count), what the backward needs)``."""
+    B, N = viewmats.shape[0], means.shape[0]
+    device, dtype = means.device, means.dtype
+    coeffs = colors if colors.dim() == 3 else colors.unsqueeze(1)
+    colors_or_black = _absent(means, 3) if background is None else background
+    ints = means.new_empty(2 * B * N + raster_project.NUM_FLAGS, dtype=torch.int64)
+    tile_counts, offsets, flags = ints.split_with_sizes((B * N, B * N, raster_project.NUM_FLAGS))
+    splats, cameras = _rows_and_cameras(means, B)
+    with warp_scope(device) as wdev:
+        _prepare_cameras(viewmats, Ks, colors_or_black, cameras, flags, wdev)
+        radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, flags, wdev)
+        torch.cumsum(tile_counts, 0, out=offsets)
+        count, flag_values = _read_count_and_flags(ints, B * N)
+        if validation_enabled():
+            _raise_on_flags(flag_values)
+        _check_budget(count, max_intersection_bytes)
+        ranges, sorted_ids = _bin_intersections(splats, radii, tile_counts, offsets, count, B, settings, wdev)
+        composite = _composite_launch(device, settings.tile_size, len(ranges))
+        common = _composite_args(ranges, sorted_ids, splats, colors_or_black, settings, composite.blocks_per_tile)
+        color, depth, alpha, state, last = _composite(common, composite, B, settings, splats, wdev)
+    H, W = settings.height, settings.width
+    depth = depth.view(B, H, W, 1) if settings.render_depth else None
+    outputs = (color.view(B, H, W, 3), depth, alpha.view(B, H, W, 1), radii.view(B, N, 2), count)
+    return outputs, _Saved(colors_or_black, cameras, splats, radii, ranges, sorted_ids, state, last, composite)
 
 
 class _Rasterize(torch.autograd.Function):
     """(means, quats, scales, opacities, colors, background) -> rgb [B,H,W,3], expected depth [B,H,W,1] or None,
-    alpha [B,H,W,1], radii [B,N,2] (not differentiable) and the intersection count (an int)."""
+    alpha [B,H,W,1], radii [B,N,2] (not differentiable) and the intersection count (an int).
+
+    The inputs and the background array go through ``save_for_backward``; the forward's own intermediates
+    (:class:`_Saved`) are kept on ``ctx`` directly."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, colors, background, viewmats, Ks, settings: _Settings,
                 max_intersection_bytes: int):  # fmt: skip
-        B, N = viewmats.shape[0], means.shape[0]
-        device, dtype = means.device, means.dtype
-        coeffs = colors if colors.dim() == 3 else colors.unsqueeze(1)
-        background = _absent(means, 3) if background is None else background
-        ints = torch.empty(2 * B * N + raster_project.NUM_FLAGS, dtype=torch.int64, device=device)
-        tile_counts, offsets, flags = ints[: B * N], ints[B * N : 2 * B * N], ints[2 * B * N :]
-        with warp_scope(device) as wdev:
-            cameras = _prepare_cameras(viewmats, Ks, background, dtype, flags, wdev)
-            splats, radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, tile_counts, flags,
-                                     wdev)  # fmt: skip
-            torch.cumsum(tile_counts, 0, out=offsets)
-            count, flag_values = _read_count_and_flags(ints, B * N)
-            if validation_enabled():
-                _raise_on_flags(flag_values)
-            _check_budget(count, max_intersection_bytes)
-            ranges, sorted_ids = _bin_intersections(splats, radii, tile_counts, offsets, count, B, settings, wdev)
-            color, depth, alpha, state, last = _composite(splats, background, ranges, sorted_ids, B, settings, wdev)
-        ctx.settings = settings
-        ctx.colors_shape = colors.shape
-        ctx.save_for_backward(means, quats, scales, opacities, coeffs, background, *cameras, radii, splats, ranges,
-                              sorted_ids, state, last)  # fmt: skip
-        ctx.mark_non_differentiable(radii)
+        outputs, saved = _render(means, quats, scales, opacities, colors, background, viewmats, Ks, settings,
+                                 max_intersection_bytes)  # fmt: skip
+        ctx.settings, ctx.colors_shape, ctx.saved = settings, colors.shape, saved._replace(colors_or_black=None)
+        ctx.save_for_backward(means, quats, scales, opacities, colors, saved.colors_or_black)
+        ctx.mark_non_differentiable(outputs[3])
         ctx.set_materialize_grads(False)
-        H, W = settings.height, settings.width
-        depth = depth.view(B, H, W, 1) if settings.render_depth else None
-        return color.view(B, H, W, 3), depth, alpha.view(B, H, W, 1), radii.view(B, N, 2), count
+        return outputs
 
     @staticmethod
     def backward(ctx, grad_color, grad_depth, grad_alpha, _grad_radii, _grad_count):
-        (means, quats, scales, opacities, coeffs, background, viewmats, Ks, origin, radii, splats, ranges, sorted_ids,
-         state, last) = ctx.saved_tensors  # fmt: skip
+        means, quats, scales, opacities, colors, colors_or_black = ctx.saved_tensors
         settings: _Settings = ctx.settings
+        saved: _Saved = ctx.saved
         grads = [None] * 5
         if any(ctx.needs_input_grad[:5]):
-            output_grads = [_flat_gradient(g, splats, inner) for g, inner in
-                            ((grad_color, (3,)), (grad_depth, ()), (grad_alpha, ()))]  # fmt: skip
+            splats, composite = saved.splats, saved.composite
+            coeffs = colors if colors.dim() == 3 else colors.unsqueeze(1)
+            output_grads = [_flat_gradient(grad_color, splats, (3,)), _flat_gradient(grad_depth, splats, ()),
+                            _flat_gradient(grad_alpha, splats, ())]  # fmt: skip
             grad_rows = torch.zeros_like(splats)
+            common = _composite_args(saved.ranges, saved.sorted_ids, splats, colors_or_black, settings,
+                                     composite.blocks_per_tile)  # fmt: skip
             with warp_scope(means.device) as wdev:
-                common, blocks, block_dim, kernels = _composite_common(ranges, sorted_ids, splats, background,
-                                                                       settings, means.device)  # fmt: skip
-                launch(kernels[1], (blocks,), [*common, state, last, *output_grads, grad_rows], wdev,
-                       block_dim=block_dim)  # fmt: skip
-                grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs,
-                                          _Cameras(viewmats, Ks, origin), radii, settings, wdev)  # fmt: skip
+                launch(composite.kernels[1], composite.blocks, [*common, saved.state, saved.last, *output_grads,
+                       grad_rows], wdev, block_dim=composite.block_dim, layout=means.dtype)  # fmt: skip
+                grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs, saved.cameras,
+                                          saved.radii, settings, wdev)  # fmt: skip
             grads[4] = grads[4].view(ctx.colors_shape)
         grad_background = None
         if ctx.needs_input_grad[5] and grad_color is not None:
             B, H, W = grad_color.shape[:3]
-            grad_background = (grad_color * state[:, :1].view(B, H, W, 1)).sum(dim=(1, 2))
+            grad_background = (grad_color * saved.state[:, :1].view(B, H, W, 1)).sum(dim=(1, 2))
         return (*grads, grad_background, None, None, None, None)
 
 
-def _composite(splats, background, ranges, sorted_ids, num_cameras: int, settings: _Settings, wdev):
+def _composite(common: list, composite: _CompositeLaunch, num_cameras: int, settings: _Settings, splats, wdev):
     """Launch the forward compositing kernel. Returns flat ``color [P,3]``, expected ``depth [P]`` (``[0]`` without
-    depth), ``alpha [P]``, ``state [P,2]`` (final T, accumulated depth) and ``last [P]`` int32 for ``P = B*H*W``."""
-    P, dtype, device = num_cameras * settings.height * settings.width, splats.dtype, splats.device
-    color = torch.empty(P, 3, dtype=dtype, device=device)
-    depth = torch.empty(P if settings.render_depth else 0, dtype=dtype, device=device)
-    alpha = torch.empty(P, dtype=dtype, device=device)
-    state = torch.empty(P, 2, dtype=dtype, device=device)
-    last = torch.empty(P, dtype=torch.int32, device=device)
-    common, blocks, block_dim, kernels = _composite_common(ranges, sorted_ids, splats, background, settings, device)
+    depth), ``alpha [P]``, ``state [P,2]`` (final T, accumulated depth), views of one buffer, and ``last [P]`` int32
+    for ``P = B*H*W``."""
+    P, dtype = num_cameras * settings.height * settings.width, splats.dtype
+    color, alpha, state, depth = splats.new_empty(6 * P + (P if settings.render_depth else 0)).split_with_sizes(
+        (3 * P, P, 2 * P, P if settings.render_depth else 0)
+    )
+    color, state = color.view(P, 3), state.view(P, 2)
+    last = torch.empty(P, dtype=torch.int32, device=splats.device)
     threshold = warp_dtype(dtype)(settings.min_transmittance)
-    launch(kernels[0], (blocks,), [*common, threshold, color, depth, alpha, state, last], wdev, block_dim=block_dim)
+    launch(composite.kernels[0], composite.blocks, [*common, threshold, color, depth, alpha, state, last], wdev,
+           block_dim=composite.block_dim, layout=dtype)  # fmt: skip
     return color, depth, alpha, state, last
 
 
@@ -426,9 +479,11 @@ def rasterize(
             if tensor is not None:
                 check_finite(name, tensor)
         return _empty_render(means, viewmats, background, settings)
-    color, depth, alpha, radii, count = _Rasterize.apply(
-        means, quats, scales, opacities, colors, background, viewmats, Ks, settings, max_intersection_bytes
-    )
+    inputs = (means, quats, scales, opacities, colors, background, viewmats, Ks, settings, max_intersection_bytes)
+    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in inputs[:6]):
+        color, depth, alpha, radii, count = _Rasterize.apply(*inputs)
+    else:  # nothing to differentiate: no autograd bookkeeping
+        color, depth, alpha, radii, count = _render(*inputs)[0]
     return color, depth, alpha, RasterMeta(radii, count, settings.tile_size)
 
 
@@ -522,8 +577,11 @@ def _make_settings(colors, width, height, near, far, mode, sh_degree, render_dep
     if not (math.isfinite(near) and near > 0 and far > near):
         raise InputError(f"near and far must satisfy 0 < near < far, got near={near}, far={far}")
     degree = _sh_degree(colors, sh_degree)
-    return _Settings(int(width), int(height), float(near), float(far), degree, mode == "antialiased",
-                     bool(render_depth), int(tile_size), _transmittance_threshold(min_transmittance))  # fmt: skip
+    width, height, tile_size = int(width), int(height), int(tile_size)
+    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    return _Settings(width, height, float(near), float(far), degree, mode == "antialiased", bool(render_depth),
+                     tile_size, _transmittance_threshold(min_transmittance), tiles_x, tiles_y,
+                     max(1, (tiles_x * tiles_y - 1).bit_length()))  # fmt: skip
 
 
 def _transmittance_threshold(value) -> float:
@@ -553,15 +611,11 @@ def _sh_degree(colors: torch.Tensor, sh_degree: int | None) -> int:
 
 
 def _check_key_bits(num_cameras: int, settings: _Settings) -> None:
-    if 32 + _tile_bits(settings) + _camera_bits(num_cameras) > 63:
+    if 32 + settings.tile_bits + _camera_bits(num_cameras) > 63:
         raise InputError(
             f"{num_cameras} cameras x {settings.tiles_x * settings.tiles_y} tiles do not fit the 31-bit "
             "camera|tile part of the sort key; render fewer cameras per call or use larger tiles"
         )
-
-
-def _tile_bits(settings: _Settings) -> int:
-    return max(1, (settings.tiles_x * settings.tiles_y - 1).bit_length())
 
 
 def _camera_bits(num_cameras: int) -> int:
@@ -603,14 +657,13 @@ def _check_budget(count: int, max_bytes: int) -> None:
 def _bin_intersections(splats, radii, tile_counts, offsets, count: int, num_cameras: int, settings: _Settings,
                        wdev) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
     """Sorted row ids ``[count]`` and per-tile ranges ``[B*tiles, 2]`` (int32) of the rows ``[B*N, 10]``."""
-    device = splats.device
-    num_tiles = num_cameras * settings.tiles_x * settings.tiles_y
-    ranges = torch.zeros(num_tiles, 2, dtype=torch.int32, device=device)
-    keys = torch.empty(2 * count, dtype=torch.int64, device=device)
-    values = torch.empty(2 * count, dtype=torch.int32, device=device)
+    tiles_per_image = settings.tiles_x * settings.tiles_y
+    ranges = tile_counts.new_zeros(num_cameras * tiles_per_image, 2, dtype=torch.int32)
+    keys = tile_counts.new_empty(2 * count)
+    values = ranges.new_empty(2 * count)
     if count == 0:
         return ranges, values
-    tile_bits = _tile_bits(settings)
+    tile_bits = settings.tile_bits
     launch(
         raster_tiles.emit_intersections,
         splats.shape[0],
@@ -628,10 +681,10 @@ def _bin_intersections(splats, radii, tile_counts, offsets, count: int, num_came
             values,
         ],
         wdev,
+        layout=splats.dtype,
     )
-    wp.utils.radix_sort_pairs(to_warp(keys), to_warp(values), count, 0, 32 + tile_bits + _camera_bits(num_cameras))
-    launch(raster_tiles.tile_ranges, count, [keys, count, tile_bits, settings.tiles_x * settings.tiles_y, ranges],
-           wdev)  # fmt: skip
+    radix_sort_pairs(keys, values, count, 32 + tile_bits + _camera_bits(num_cameras))
+    launch(raster_tiles.tile_ranges, count, [keys, count, tile_bits, tiles_per_image, ranges], wdev, layout=())
     return ranges, values[:count]
 
 
