@@ -167,7 +167,7 @@ def _warp_stream(torch_stream: torch.cuda.Stream) -> "wp.Stream":
     return stream
 
 
-def to_warp(tensor: torch.Tensor, dtype=None, ndim: int | None = None):
+def to_warp(tensor: torch.Tensor, dtype=None):
     """Zero-copy Warp view of a contiguous tensor, never tracking gradients on the Warp side.
 
     ``dtype`` may be a Warp vector/matrix type whose trailing dimension(s) the tensor provides.
@@ -335,8 +335,7 @@ class _Command:
             if tensor.__class__ is Grouped:
                 tensor = tensor.tensor
             if not tensor.is_contiguous():
-                raise InputError(f"tensor for argument {self.labels[position]!r} of kernel {self.recorded.kernel.key} "
-                                 "must be contiguous")  # fmt: skip
+                raise _not_contiguous(self.labels[position], self.recorded.kernel)
             descriptor.data = tensor.data_ptr()
             shape = tensor.shape
             if shape != shapes[k]:
@@ -498,9 +497,13 @@ def _resolve_overload(kernel, adjoint: bool, args: Sequence, adj_args: Sequence)
 def _tensor_of(arg, position: int, kernel) -> torch.Tensor:
     tensor = _tensor(arg)
     if not tensor.is_contiguous():
-        name = kernel.adj.args[position].label
-        raise InputError(f"tensor for argument {name!r} of kernel {kernel.key} must be contiguous")
+        raise _not_contiguous(kernel.adj.args[position].label, kernel)
     return tensor
+
+
+def _not_contiguous(label: str, kernel) -> InputError:
+    """The error for a non-contiguous tensor given for kernel argument ``label``."""
+    return InputError(f"tensor for argument {label!r} of kernel {kernel.key} must be contiguous")
 
 
 def _wrap_arrays(args: Sequence, dtypes: Sequence, kernel) -> list:

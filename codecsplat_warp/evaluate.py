@@ -136,17 +136,18 @@ def find_scenes(path) -> list[pathlib.Path]:
 
 
 def select_scenes(paths: list[pathlib.Path], names: tuple[str, ...]) -> list[pathlib.Path]:
-    """The ``paths`` whose folder name is in ``names`` (all of them when ``names`` is empty).
+    """The ``paths`` whose folder name is in ``names``, in the order of ``names`` (all paths when it is empty).
 
     Raises:
         DataError: a name matches no path (the error lists the scenes found).
     """
     if not names:
         return paths
-    missing = sorted(set(names) - {p.name for p in paths})
+    by_name = {p.name: p for p in paths}
+    missing = sorted(set(names) - set(by_name))
     if missing:
-        raise DataError(f"scene(s) {', '.join(missing)} not found; found {', '.join(p.name for p in paths)}")
-    return [p for p in paths if p.name in names]
+        raise DataError(f"scene(s) {', '.join(missing)} not found; found {', '.join(by_name)}")
+    return [by_name[name] for name in names]
 
 
 def scene_samples(path: pathlib.Path, protocol: Protocol, context_views: int, samples: int) -> list[Sample]:

@@ -40,7 +40,7 @@ from tqdm.auto import tqdm
 from ..codec import bytes_report, parse_bitstream
 from ..codec.bitstream import FLAG_FLOAT64_CAMERAS, HEADER_BYTES, framed_bytes, record_bytes
 from ..errors import DataError, InputError
-from ..evaluate import PROTOCOLS, Protocol, find_scenes, scene_samples
+from ..evaluate import PROTOCOLS, Protocol, find_scenes, scene_samples, select_scenes
 from ..export.ply import encode_ply
 from ..model.pretrained import load_pretrained
 from ..model.prune import prune_gaussians
@@ -143,12 +143,7 @@ def _scene_paths(data: str | None, names: str | None, default_count: int) -> lis
         raise DataError("bench leaveout needs real scenes: pass --data FOLDER or set CODECSPLAT_DATA")
     found = find_scenes(data)
     if names:
-        by_name = {p.name: p for p in found}
-        wanted = [n.strip() for n in names.split(",") if n.strip()]
-        missing = [n for n in wanted if n not in by_name]
-        if missing:
-            raise DataError(f"no scene {', '.join(missing)} under {data}; it has {', '.join(by_name)}")
-        return [by_name[n] for n in wanted]
+        return select_scenes(found, tuple(n.strip() for n in names.split(",") if n.strip()))
     count = min(default_count, len(found))
     return [found[round(i * (len(found) - 1) / max(1, count - 1))] for i in range(count)]
 

@@ -259,13 +259,18 @@ class _ProjectGaussians(torch.autograd.Function):
         return (*grads, None, None, None)
 
 
+def _sh_coefficients(colors: torch.Tensor) -> torch.Tensor:
+    """``colors`` as SH coefficients ``[N,K,3]``: RGB ``[N,3]`` becomes ``[N,1,3]`` (a view)."""
+    return colors if colors.dim() == 3 else colors.unsqueeze(1)
+
+
 def _absent(like: torch.Tensor, *inner: int) -> torch.Tensor:
     """A zero-length array ``[0, *inner]``: how the kernels are told that an optional input or output is absent."""
     return like.new_empty(0, *inner)
 
 
 CPU_BATCH = 16
-"""Rows a one-pixel CPU block stages per step (CUDA blocks stage tile_size^2 rows, one per lane)."""
+"""Rows a one-pixel CPU block stages per step (CUDA blocks stage block_dim rows, one per lane)."""
 
 
 MAX_CUDA_LANES = 256
@@ -325,7 +330,7 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
     radii [B,N,2] int32, intersection count), what the backward needs)``."""
     B, N = viewmats.shape[0], means.shape[0]
     device, dtype = means.device, means.dtype
-    coeffs = colors if colors.dim() == 3 else colors.unsqueeze(1)
+    coeffs = _sh_coefficients(colors)
     colors_or_black = _absent(means, 3) if background is None else background
     ints = means.new_empty(2 * B * N + raster_project.NUM_FLAGS, dtype=torch.int64)
     tile_counts, offsets, flags = ints.split_with_sizes((B * N, B * N, raster_project.NUM_FLAGS))
@@ -374,7 +379,7 @@ class _Rasterize(torch.autograd.Function):
         grads = [None] * 5
         if any(ctx.needs_input_grad[:5]):
             splats, composite = saved.splats, saved.composite
-            coeffs = colors if colors.dim() == 3 else colors.unsqueeze(1)
+            coeffs = _sh_coefficients(colors)
             output_grads = [_flat_gradient(grad_color, splats, (3,)), _flat_gradient(grad_depth, splats, ()),
                             _flat_gradient(grad_alpha, splats, ())]  # fmt: skip
             grad_rows = torch.zeros_like(splats)
@@ -525,7 +530,7 @@ def project_gaussians(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, far, None, mode,
         sh_degree, True, 16, DEFAULT_MIN_TRANSMITTANCE,
     )  # fmt: skip
-    coeffs = colors if colors.dim() == 3 else colors.unsqueeze(1)
+    coeffs = _sh_coefficients(colors)
     splats, radii, flags = _ProjectGaussians.apply(means, quats, scales, opacities, coeffs, viewmats, Ks, settings)
     if validation_enabled() and means.shape[0]:
         _raise_on_flags(flags.tolist())
