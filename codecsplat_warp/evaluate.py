@@ -477,7 +477,7 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
     png = PngCompression(sh_clusters=config.png_sh_clusters, kmeans_iterations=config.kmeans_iterations)
     metrics = ImageMetrics(config.lpips_weights, device)
     samples, skipped = [], []
-    for path in select_scenes(find_scenes(config.data), config.scenes):
+    for path in select_scenes(find_scenes(config.data), tuple(sorted(config.scenes))):
         try:
             samples += scene_samples(path, protocol, protocol.context_views or model.config.num_views,
                                      config.samples_per_scene)
