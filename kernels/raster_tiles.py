@@ -1,9 +1,10 @@
 """Tile binning of projected Gaussians: tile rectangles, 64-bit sort keys and per-tile ranges.
 
 One intersection is one (camera, Gaussian, tile) triple. Its key is
-``[camera | tile | float32 depth bits]`` (camera and tile in the high 32 bits, tile index of
-``tile_bits`` bits), so one radix sort orders intersections by camera, then tile, then depth
-(positive float32 depths sort like their bit patterns). The value is the flat index
+``[camera | tile | float32 depth bits]``: the depth's 31 low bits (a positive float32 has sign bit 0, and
+positive float32 values sort like their bit patterns), then the tile index in ``tile_bits`` bits, then
+the camera, so one radix sort over ``DEPTH_BITS + tile_bits + camera bits`` bits orders intersections by
+camera, then tile, then depth. The value is the flat index
 ``camera * N + gaussian`` of the Gaussian's projected row.
 """
 
@@ -14,6 +15,11 @@ from typing import Any
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
+
+DEPTH_BITS = 31
+"""Key bits below the tile index: a positive float32 depth without its (zero) sign bit."""
+
+_DEPTH_SHIFT = wp.constant(wp.int64(DEPTH_BITS))
 
 DEPTH_COLUMN = 9
 """Column of the projected row (see :mod:`codecsplat_warp.kernels.raster_project`) holding camera-space depth."""
@@ -70,7 +76,7 @@ def emit_intersections(
     for ty in range(rect[1], rect[3]):
         for tx in range(rect[0], rect[2]):
             high = (wp.int64(camera) << wp.int64(tile_bits)) | wp.int64(ty * tiles_x + tx)
-            keys[k] = (high << wp.int64(32)) | depth_bits
+            keys[k] = (high << _DEPTH_SHIFT) | depth_bits
             values[k] = i
             k += 1
 
@@ -90,14 +96,14 @@ def tile_ranges(
         ranges: ``[B * tiles_per_image, 2]`` zero-initialised; tiles without intersections stay (0, 0).
     """
     i = wp.tid()
-    high = keys[i] >> wp.int64(32)
+    high = keys[i] >> _DEPTH_SHIFT
     mask = (wp.int64(1) << wp.int64(tile_bits)) - wp.int64(1)
     tile = int(high >> wp.int64(tile_bits)) * tiles_per_image + int(high & mask)
     if i == 0:
         ranges[tile, 0] = i
-    elif (keys[i - 1] >> wp.int64(32)) != high:
+    elif (keys[i - 1] >> _DEPTH_SHIFT) != high:
         ranges[tile, 0] = i
     if i == count - 1:
         ranges[tile, 1] = i + 1
-    elif (keys[i + 1] >> wp.int64(32)) != high:
+    elif (keys[i + 1] >> _DEPTH_SHIFT) != high:
         ranges[tile, 1] = i + 1

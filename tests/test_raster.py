@@ -329,3 +329,35 @@ def test_memory_budget_raises_before_allocating():
     count = rasterize(*scene, 32, 32)[3].intersection_count
     with pytest.raises(RasterMemoryError, match=f"{count:,} tile intersections need {24 * count:,} bytes"):
         rasterize(*scene, 32, 32, max_intersection_bytes=24 * count - 1)
+
+
+def test_culled_rows_are_never_read_and_zeroed_only_for_projection(monkeypatch):
+    """rasterize leaves the projected rows of culled Gaussians unwritten (the kernel's ``zero_culled`` = 0): poisoned
+    with NaN, they must not reach the images or gradients; project_gaussians writes them as zeros."""
+    import codecsplat_warp.ops.raster as raster_ops
+
+    make_rows = raster_ops._rows_and_cameras
+
+    def poisoned_rows(means, num_cameras):
+        rows, cameras = make_rows(means, num_cameras)
+        rows.fill_(float("nan"))
+        return rows, cameras
+
+    monkeypatch.setattr(raster_ops, "_rows_and_cameras", poisoned_rows)
+    scene = make_scene(40, 16, 16, seed=11)
+    scene[0][::2, 2] *= -1.0  # every other Gaussian behind the camera: culled
+    ours, ref, grads_ours, grads_ref = render_both(scene, 16, 16)
+    assert_matches_reference(ours, ref, grads_ours, grads_ref, image_atol=1e-10, grad_rtol=1e-8)
+    assert 0 < int(ours[3].visible_counts.sum()) <= 20
+    proj = project_gaussians(*scene, 16, 16)
+    culled = (proj.radii[0] == 0).all(-1)
+    assert culled[::2].all()
+    for field in (proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths):
+        assert torch.equal(field[0][culled], torch.zeros_like(field[0][culled]))
+
+
+def test_too_many_tiles_for_the_sort_key_is_a_typed_error():
+    means, quats, scales, opacities, colors, viewmats, Ks = make_scene(2, 16, 16)
+    two_cameras = viewmats.expand(2, 4, 4), Ks.expand(2, 3, 3)
+    with pytest.raises(InputError, match="camera\\|tile part of the sort key"):
+        rasterize(means, quats, scales, opacities, colors, *two_cameras, 65536, 65536, tile_size=1)

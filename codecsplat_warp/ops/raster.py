@@ -165,14 +165,14 @@ _ZERO = {dtype: warp_dtype(dtype)(0.0) for dtype in FLOAT_DTYPES}
 
 
 def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, settings: _Settings, splats: torch.Tensor,
-             tile_counts: torch.Tensor, flags: torch.Tensor, wdev) -> torch.Tensor:  # fmt: skip
-    """Fill the projected rows ``splats [B*N, 10]``, ``tile_counts [B*N]`` and ``flags``; return radii ``[B*N, 2]``
-    int32."""
+             tile_counts: torch.Tensor, flags: torch.Tensor, wdev, zero_culled: bool = False) -> torch.Tensor:  # fmt: skip
+    """Fill the projected rows ``splats [B*N, 10]`` (rows of culled Gaussians only with ``zero_culled``, else left
+    as they were), ``tile_counts [B*N]`` and ``flags``; return radii ``[B*N, 2]`` int32."""
     dtype = means.dtype
     scalar = warp_dtype(dtype)
     radii = tile_counts.new_empty(splats.shape[0], 2, dtype=torch.int32)
     launch(
-        raster_project.project_gaussians,
+        raster_project.projection_kernels(settings.sh_degree >= 0).project,
         (cameras.viewmats.shape[0], means.shape[0]),
         [
             *_projection_inputs(means, quats, scales, opacities, coeffs, cameras),
@@ -186,6 +186,7 @@ def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, setting
             settings.tile_size,
             settings.tiles_x,
             settings.tiles_y,
+            int(zero_culled),
             splats,
             vectors(radii),
             tile_counts,
@@ -210,7 +211,7 @@ def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, camera
     adj_args = [vectors(grads[0]), vectors(grads[1]), vectors(grads[2]), grads[3], vectors(grads[4]), None, None, None,
                 None, 0, 0, 0, zero, 0, grad_rows]  # fmt: skip
     launch(
-        raster_project.project_gaussians_differentiable,
+        raster_project.projection_kernels(settings.sh_degree >= 0).differentiable,
         (B, N),
         [
             *_projection_inputs(means, quats, scales, opacities, coeffs, cameras),
@@ -242,7 +243,7 @@ class _ProjectGaussians(torch.autograd.Function):
         with warp_scope(means.device) as wdev:
             _prepare_cameras(viewmats, Ks, _absent(means, 3), cameras, flags, wdev)
             radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, flags,
-                             wdev)  # fmt: skip
+                             wdev, zero_culled=True)  # fmt: skip
         ctx.settings = settings
         ctx.cameras = cameras
         ctx.save_for_backward(means, quats, scales, opacities, coeffs, radii)
@@ -273,11 +274,6 @@ CPU_BATCH = 16
 """Rows a one-pixel CPU block stages per step (CUDA blocks stage block_dim rows, one per lane)."""
 
 
-MAX_CUDA_LANES = 256
-"""Threads per CUDA compositing block: a 16x16 tile is one block; larger tiles take several (a 32x32 block of
-1,024 threads asks for more registers than a multiprocessor has)."""
-
-
 class _CompositeLaunch(NamedTuple):
     """How both compositing kernels are launched: ``blocks`` blocks of ``block_dim`` lanes, ``blocks_per_tile`` per
     tile, ``kernels`` = (forward, backward)."""
@@ -289,9 +285,9 @@ class _CompositeLaunch(NamedTuple):
 
 
 def _composite_launch(device: torch.device, tile_size: int, num_tiles: int) -> _CompositeLaunch:
-    """One lane per pixel on CUDA (at most MAX_CUDA_LANES a block), one-lane blocks on the CPU."""
+    """One lane per pixel on CUDA (at most ``raster_composite.MAX_LANES`` a block), one-lane blocks on the CPU."""
     pixels = tile_size * tile_size
-    lanes = min(pixels, MAX_CUDA_LANES) if device.type == "cuda" else 1
+    lanes = min(pixels, raster_composite.MAX_LANES) if device.type == "cuda" else 1
     batch = lanes if device.type == "cuda" else CPU_BATCH
     blocks_per_tile = -(-pixels // lanes)
     kernels = raster_composite.composite_kernels(batch)
@@ -616,10 +612,10 @@ def _sh_degree(colors: torch.Tensor, sh_degree: int | None) -> int:
 
 
 def _check_key_bits(num_cameras: int, settings: _Settings) -> None:
-    if 32 + settings.tile_bits + _camera_bits(num_cameras) > 63:
+    if raster_tiles.DEPTH_BITS + settings.tile_bits + _camera_bits(num_cameras) > 63:
         raise InputError(
-            f"{num_cameras} cameras x {settings.tiles_x * settings.tiles_y} tiles do not fit the 31-bit "
-            "camera|tile part of the sort key; render fewer cameras per call or use larger tiles"
+            f"{num_cameras} cameras x {settings.tiles_x * settings.tiles_y} tiles do not fit the "
+            f"{63 - raster_tiles.DEPTH_BITS}-bit camera|tile part of the sort key; render fewer cameras per call or use larger tiles"
         )
 
 
@@ -688,7 +684,7 @@ def _bin_intersections(splats, radii, tile_counts, offsets, count: int, num_came
         wdev,
         layout=splats.dtype,
     )
-    radix_sort_pairs(keys, values, count, 32 + tile_bits + _camera_bits(num_cameras))
+    radix_sort_pairs(keys, values, count, raster_tiles.DEPTH_BITS + tile_bits + _camera_bits(num_cameras))
     launch(raster_tiles.tile_ranges, count, [keys, count, tile_bits, tiles_per_image, ranges], wdev, layout=())
     return ranges, values[:count]
 
