@@ -51,6 +51,23 @@ def time_call(fn: Callable[[], object], device: torch.device, reps: int, warmup:
     return Timing(statistics.median(samples), min(samples), max(samples), reps)
 
 
+def cuda_kernel_ms(fn: Callable[[], object], device: torch.device, reps: int) -> float:
+    """GPU time of the kernels, copies and fills that one call of ``fn`` issues, in ms: the sum of their device
+    times from ``torch.profiler`` over ``reps`` calls (after one warm-up call), divided by ``reps``. Host time and the
+    gaps between launches are left out: what the call asks the GPU to do, not how long the caller waits."""
+    from torch.profiler import ProfilerActivity, profile
+
+    fn()
+    torch.cuda.synchronize(device)
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        for _ in range(reps):
+            fn()
+        torch.cuda.synchronize(device)
+    device_us = sum(event.self_device_time_total for event in prof.key_averages()
+                    if event.device_type == torch.autograd.DeviceType.CUDA)  # fmt: skip
+    return device_us / reps / 1e3
+
+
 def cuda_peak_bytes(fn: Callable[[], object], device: torch.device) -> int:
     """Peak CUDA memory allocated by torch's allocator while ``fn`` runs, above what was live before."""
     torch.cuda.synchronize(device)
