@@ -113,3 +113,16 @@ def test_decode_prunes_for_given_cameras_and_render_reports_its_pruning(tmp_path
     assert main(["decode", str(tmp_path / "a.csplat"), "-o", str(tmp_path / "c.ply"), "--cameras", cameras,
                  *common]) == EXIT_USER
     assert "--prune" in capsys.readouterr().err
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU visible to torch")
+def test_kernel_times_name_our_kernels_on_cuda():
+    """``bench raster --kernels``: per-kernel GPU times of ours, forward and forward+backward (no gsplat here)."""
+    from codecsplat_warp.bench.raster import measure_kernels
+
+    result = measure_kernels(Workload("tiny", 1, 32, 32), torch.device("cuda"), 2, 1.0, None, top=20)
+    assert set(result) == {"ours fwd", "ours fwd+bwd"}
+    for case, expected in (("ours fwd", "composite_forward"), ("ours fwd+bwd", "composite_backward")):
+        assert result[case]["total_us"] > 0
+        assert any(expected in name for name, _, _ in result[case]["kernels"]), case

@@ -51,10 +51,11 @@ def time_call(fn: Callable[[], object], device: torch.device, reps: int, warmup:
     return Timing(statistics.median(samples), min(samples), max(samples), reps)
 
 
-def cuda_kernel_ms(fn: Callable[[], object], device: torch.device, reps: int) -> float:
-    """GPU time of the kernels, copies and fills that one call of ``fn`` issues, in ms: the sum of their device
-    times from ``torch.profiler`` over ``reps`` calls (after one warm-up call), divided by ``reps``. Host time and the
-    gaps between launches are left out: what the call asks the GPU to do, not how long the caller waits."""
+def cuda_kernel_times(fn: Callable[[], object], device: torch.device, reps: int) -> list[tuple[str, float, float]]:
+    """GPU time of every kernel, copy and fill that one call of ``fn`` issues: ``(name, us per call, launches per
+    call)``, largest first, from ``torch.profiler`` device times over ``reps`` calls after one warm-up call. Host
+    time and the gaps between launches are left out: what the call asks the GPU to do, not how long the caller
+    waits."""
     from torch.profiler import ProfilerActivity, profile
 
     fn()
@@ -63,9 +64,14 @@ def cuda_kernel_ms(fn: Callable[[], object], device: torch.device, reps: int) ->
         for _ in range(reps):
             fn()
         torch.cuda.synchronize(device)
-    device_us = sum(event.self_device_time_total for event in prof.key_averages()
-                    if event.device_type == torch.autograd.DeviceType.CUDA)  # fmt: skip
-    return device_us / reps / 1e3
+    rows = [(event.key, event.self_device_time_total / reps, event.count / reps) for event in prof.key_averages()
+            if event.device_type == torch.autograd.DeviceType.CUDA and event.self_device_time_total > 0]  # fmt: skip
+    return sorted(rows, key=lambda row: -row[1])
+
+
+def cuda_kernel_ms(fn: Callable[[], object], device: torch.device, reps: int) -> float:
+    """Sum of :func:`cuda_kernel_times` of one call of ``fn``, in ms."""
+    return sum(us for _, us, _ in cuda_kernel_times(fn, device, reps)) / 1e3
 
 
 def cuda_peak_bytes(fn: Callable[[], object], device: torch.device) -> int:

@@ -12,7 +12,9 @@ depth), peak memory of forward+backward (CUDA: torch allocator delta, Warp's own
 peak RSS growth in a fresh process), intersection count, and -- on CUDA with gsplat importable --
 gsplat's ``rasterization(packed=False, render_mode="RGB+ED")`` on the same inputs, its times and the PSNR of
 our RGB against its RGB. A small scene is also compared with the dense torch reference (time and max error).
-``--scale`` keeps a random fraction of the Gaussians (quick CPU runs).
+``--scale`` keeps a random fraction of the Gaussians (quick CPU runs). ``--kernels N`` (CUDA) also lists the N
+kernels with the most GPU time per call for ours and gsplat's forward and forward+backward, from
+``torch.profiler`` (stored per workload under ``kernels``).
 """
 
 from __future__ import annotations
@@ -28,7 +30,9 @@ import warp as wp
 from ..ops.raster import rasterize
 from ..reference.raster import rasterize_dense
 from ..synthetic import make_rig, smooth_depth
-from .common import cuda_peak_bytes, format_table, machine_name, rss_peak_growth_bytes, time_call
+from .common import (
+    cuda_kernel_times, cuda_peak_bytes, format_table, machine_name, rss_peak_growth_bytes, time_call,
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -53,6 +57,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reps", type=int, default=None, help="timed repetitions (default: 30 on CUDA, 3 on CPU)")
     parser.add_argument("--scale", type=float, default=1.0, help="fraction of the Gaussians kept (0 < scale <= 1)")
     parser.add_argument("--no-gsplat", action="store_true", help="skip gsplat even when it is importable")
+    parser.add_argument("--kernels", type=int, default=0, metavar="N",
+                        help="CUDA: also list the N kernels with the most GPU time per call, ours and gsplat's")
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -68,6 +74,8 @@ def run(args: argparse.Namespace) -> dict:
             raise ValueError(f"unknown workload {name!r}; choose from {', '.join(WORKLOADS)}")
         rows.append(measure_workload(WORKLOADS[name], device, reps, scale, gsplat))
         _print_row(rows[-1])
+        if getattr(args, "kernels", 0) and device.type == "cuda":
+            rows[-1]["kernels"] = measure_kernels(WORKLOADS[name], device, reps, scale, gsplat, args.kernels)
     reference = measure_reference(device, reps)
     machine = machine_name(device)
     table = format_table(rows, COLUMNS)
@@ -210,6 +218,26 @@ def measure_workload(workload: Workload, device: torch.device, reps: int, scale:
         row["error"] = f"gsplat: {type(exc).__name__}: {exc}"
         traceback.print_exc()
     return row
+
+
+def measure_kernels(workload: Workload, device: torch.device, reps: int, scale: float, gsplat: dict | None,
+                    top: int) -> dict:  # fmt: skip
+    """Per-kernel GPU time of ours (and gsplat's) forward and forward+backward on ``workload``
+    (:func:`~codecsplat_warp.bench.common.cuda_kernel_times`): ``{"ours fwd": {"total_us": .., "kernels": [[name,
+    us, launches], ...top]}, ...}``, printed as it goes."""
+    scene = make_scene(workload, device, scale)
+    calls = {"ours fwd": lambda: ours_forward(scene), "ours fwd+bwd": lambda: ours_forward_backward(scene)}
+    if gsplat is not None and gsplat.get("rasterization") is not None:
+        calls.update({"gsplat fwd": lambda: gsplat_forward(gsplat, scene),
+                      "gsplat fwd+bwd": lambda: gsplat_forward_backward(gsplat, scene)})
+    result = {}
+    for case, call in calls.items():
+        times = cuda_kernel_times(call, device, reps)
+        result[case] = {"total_us": sum(us for _, us, _ in times), "kernels": [list(t) for t in times[:top]]}
+        print(f"  {workload.name} {case}: {result[case]['total_us']:.1f} us of GPU time per call", flush=True)
+        for name, us, launches in times[:top]:
+            print(f"    {us:9.1f} us  x{launches:4.1f}  {name[:100]}", flush=True)
+    return result
 
 
 def measure_reference(device: torch.device, reps: int) -> dict:
