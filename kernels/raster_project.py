@@ -19,11 +19,11 @@ terms cancel); so the world is translated by the mean camera centre ``o`` (compu
 to the Gaussians' dtype): the projection kernels use ``x - o`` and viewmats ``V T(o)`` composed in float64.
 A pure translation: images are unchanged and the gradient of ``x - o`` is the identity.
 
-The ``project_gaussians`` kernel (see :func:`projection_kernels`) also culls (non-finite, z outside (near, far), det <= 0 after the blur,
-opacity < 1/255, off-screen), writes integer pixel radii from the opacity-aware extent
-``min(3.33, sqrt(2 ln(255 opacity)))`` sigma, the number of tiles each row touches, and input
-validation flags. Its twin ``project_gaussians_differentiable`` recomputes only the differentiable row of the
-visible Gaussians and is launched with ``adjoint=True`` for the backward pass (straight-line code, so
+The ``project_gaussians`` kernel (see :func:`projection_kernels`) also culls (non-finite, z outside
+(near, far), det <= 0 after the blur, opacity < 1/255, off-screen), writes integer pixel radii from the
+opacity-aware extent ``min(3.33, sqrt(2 ln(255 opacity)))`` sigma, the number of tiles each row touches, and
+input validation flags. Its twin ``project_gaussians_differentiable`` recomputes only the differentiable row of
+the visible Gaussians and is launched with ``adjoint=True`` for the backward pass (straight-line code, so
 Warp's automatic adjoint is exact; a float64 gradcheck covers it).
 """
 
