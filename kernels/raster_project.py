@@ -308,6 +308,13 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
     SH code (and its adjoint) would otherwise claim registers in the RGB kernels too: fewer registers, more
     threads in flight per multiprocessor."""
 
+    @wp.func
+    def row_color(coeffs: wp.array2d(dtype=Any), n: int, sh_degree: int, mean: Any, viewmat: Any):
+        """RGB of Gaussian ``n``: SH evaluated towards it, or the given colour (``coeffs[n, 0]``)."""
+        if wp.static(spherical_harmonics):
+            return sh_row_color(coeffs, n, sh_degree, mean, viewmat)
+        return coeffs[n, 0]
+
     @wp.kernel(enable_backward=False, module="unique")
     def project_gaussians(
         means: wp.array(dtype=Any),
@@ -398,10 +405,7 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
             return
         if mean2d[1] + ry <= zero or mean2d[1] - ry >= type(opacity)(float(height)):
             return
-        if wp.static(spherical_harmonics):
-            color = sh_row_color(coeffs, n, sh_degree, mean, viewmat)
-        else:
-            color = coeffs[n, 0]
+        color = row_color(coeffs, n, sh_degree, mean, viewmat)
         if not row_is_finite(mean2d, conic, effective_opacity, color):
             return
         write_row(splats, i, mean2d, conic, effective_opacity, color, p[2])
@@ -448,10 +452,7 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         effective_opacity = opacity
         if antialiased != 0:
             effective_opacity = opacity * blur_compensation(wp.determinant(cov2d), det)
-        if wp.static(spherical_harmonics):
-            color = sh_row_color(coeffs, n, sh_degree, mean, viewmat)
-        else:
-            color = coeffs[n, 0]
+        color = row_color(coeffs, n, sh_degree, mean, viewmat)
         write_row(splats, i, projected_mean(p, K), conic, effective_opacity, color, p[2])
 
     return ProjectionKernels(project_gaussians, project_gaussians_differentiable)
