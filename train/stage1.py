@@ -335,10 +335,14 @@ def parse_args(argv: list[str] | None = None, config_class: type = TrainConfig, 
     return config
 
 
-def main(argv: list[str] | None = None) -> None:
-    metrics = train(parse_args(argv))
+def print_final_metrics(metrics: dict | None) -> None:
+    """Print a run's final metrics as one JSON line, on rank 0 only (the other ranks log the same averages)."""
     if int(os.environ.get("RANK", "0")) == 0 and metrics:
         print(json.dumps(metrics))
+
+
+def main(argv: list[str] | None = None) -> None:
+    print_final_metrics(train(parse_args(argv)))
 
 
 if __name__ == "__main__":

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import pathlib
 from dataclasses import dataclass
 
@@ -182,9 +181,7 @@ def parse_args(argv: list[str] | None = None) -> Stage2Config:
 
 
 def main(argv: list[str] | None = None) -> None:
-    metrics = train(parse_args(argv))
-    if int(os.environ.get("RANK", "0")) == 0 and metrics:
-        print(json.dumps(metrics))
+    stage1.print_final_metrics(train(parse_args(argv)))
 
 
 if __name__ == "__main__":
