@@ -127,10 +127,10 @@ class _Cameras(NamedTuple):
 
 def _rows_and_cameras(means: torch.Tensor, num_cameras: int) -> tuple[torch.Tensor, _Cameras]:
     """Uninitialised projected rows ``[B*N, 10]`` and prepared cameras (:class:`_Cameras`) in the dtype of ``means``
-    ``[N,3]``, views of one buffer."""
-    B, size = num_cameras, num_cameras * means.shape[0] * raster_project.ROW_WIDTH
-    rows, viewmats, Ks, origin = means.new_empty(size + 25 * B + 3).split_with_sizes((size, 16 * B, 9 * B, 3))
-    return rows.view(-1, raster_project.ROW_WIDTH), _Cameras(viewmats.view(B, 4, 4), Ks.view(B, 3, 3), origin)
+    ``[N,3]`` (separate allocations: fewer host operations than views of one buffer)."""
+    B = num_cameras
+    rows = means.new_empty(B * means.shape[0], raster_project.ROW_WIDTH)
+    return rows, _Cameras(means.new_empty(B, 4, 4), means.new_empty(B, 3, 3), means.new_empty(3))
 
 
 def _prepare_cameras(viewmats, Ks, background, cameras: _Cameras, flags: torch.Tensor, wdev) -> None:
@@ -335,14 +335,19 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
         _prepare_cameras(viewmats, Ks, colors_or_black, cameras, flags, wdev)
         radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, flags, wdev)
         torch.cumsum(tile_counts, 0, out=offsets)
+        # everything whose size does not depend on the count is allocated (and zeroed) before the sync
+        ranges = tile_counts.new_zeros(B * settings.tiles_x * settings.tiles_y, 2, dtype=torch.int32)
+        composite = _composite_launch(device, settings.tile_size, len(ranges))
+        color, depth, alpha, state, last = _composite_outputs(B, settings, splats)
         count, flag_values = _read_count_and_flags(ints, B * N)
         if validation_enabled():
             _raise_on_flags(flag_values)
         _check_budget(count, max_intersection_bytes)
-        ranges, sorted_ids = _bin_intersections(splats, radii, tile_counts, offsets, count, B, settings, wdev)
-        composite = _composite_launch(device, settings.tile_size, len(ranges))
+        sorted_ids = _bin_intersections(splats, radii, tile_counts, offsets, count, B, settings, ranges, wdev)
         common = _composite_args(ranges, sorted_ids, splats, colors_or_black, settings, composite.blocks_per_tile)
-        color, depth, alpha, state, last = _composite(common, composite, B, settings, splats, wdev)
+        threshold = warp_dtype(dtype)(settings.min_transmittance)
+        launch(composite.kernels[0], composite.blocks, [*common, threshold, color, depth, alpha, state, last], wdev,
+               block_dim=composite.block_dim, layout=dtype)  # fmt: skip
     H, W = settings.height, settings.width
     depth = depth.view(B, H, W, 1) if settings.render_depth else None
     outputs = (color.view(B, H, W, 3), depth, alpha.view(B, H, W, 1), radii.view(B, N, 2), count)
@@ -394,20 +399,16 @@ class _Rasterize(torch.autograd.Function):
         return (*grads, grad_background, None, None, None, None)
 
 
-def _composite(common: list, composite: _CompositeLaunch, num_cameras: int, settings: _Settings, splats, wdev):
-    """Launch the forward compositing kernel. Returns flat ``color [P,3]``, expected ``depth [P]`` (``[0]`` without
-    depth), ``alpha [P]``, ``state [P,2]`` (final T, accumulated depth), views of one buffer, and ``last [P]`` int32
-    for ``P = B*H*W``."""
-    P, dtype = num_cameras * settings.height * settings.width, splats.dtype
+def _composite_outputs(num_cameras: int, settings: _Settings, splats: torch.Tensor) -> tuple:
+    """Uninitialised outputs of the forward compositing kernel for ``P = B*H*W`` pixels: flat ``color [P,3]``,
+    expected ``depth [P]`` (``[0]`` without depth), ``alpha [P]``, ``state [P,2]`` (final T, accumulated depth),
+    views of one buffer in the dtype of ``splats``, and ``last [P]`` int32."""
+    P = num_cameras * settings.height * settings.width
     color, alpha, state, depth = splats.new_empty(6 * P + (P if settings.render_depth else 0)).split_with_sizes(
         (3 * P, P, 2 * P, P if settings.render_depth else 0)
     )
-    color, state = color.view(P, 3), state.view(P, 2)
     last = torch.empty(P, dtype=torch.int32, device=splats.device)
-    threshold = warp_dtype(dtype)(settings.min_transmittance)
-    launch(composite.kernels[0], composite.blocks, [*common, threshold, color, depth, alpha, state, last], wdev,
-           block_dim=composite.block_dim, layout=dtype)  # fmt: skip
-    return color, depth, alpha, state, last
+    return color.view(P, 3), depth, alpha, state.view(P, 2), last
 
 
 def _flat_gradient(grad: torch.Tensor | None, like: torch.Tensor, inner: tuple[int, ...]) -> torch.Tensor:
@@ -656,14 +657,14 @@ def _check_budget(count: int, max_bytes: int) -> None:
 
 
 def _bin_intersections(splats, radii, tile_counts, offsets, count: int, num_cameras: int, settings: _Settings,
-                       wdev) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
-    """Sorted row ids ``[count]`` and per-tile ranges ``[B*tiles, 2]`` (int32) of the rows ``[B*N, 10]``."""
+                       ranges: torch.Tensor, wdev) -> torch.Tensor:  # fmt: skip
+    """Sorted row ids ``[count]`` (int32) of the rows ``[B*N, 10]``; fills the per-tile ranges ``[B*tiles, 2]``
+    (int32, zero-initialised by the caller)."""
     tiles_per_image = settings.tiles_x * settings.tiles_y
-    ranges = tile_counts.new_zeros(num_cameras * tiles_per_image, 2, dtype=torch.int32)
     keys = tile_counts.new_empty(2 * count)
     values = ranges.new_empty(2 * count)
     if count == 0:
-        return ranges, values
+        return values
     tile_bits = settings.tile_bits
     launch(
         raster_tiles.emit_intersections,
@@ -686,7 +687,7 @@ def _bin_intersections(splats, radii, tile_counts, offsets, count: int, num_came
     )
     radix_sort_pairs(keys, values, count, raster_tiles.DEPTH_BITS + tile_bits + _camera_bits(num_cameras))
     launch(raster_tiles.tile_ranges, count, [keys, count, tile_bits, tiles_per_image, ranges], wdev, layout=())
-    return ranges, values[:count]
+    return values[:count]
 
 
 def _empty_render(means, viewmats, background, settings: _Settings):
