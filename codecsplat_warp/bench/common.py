@@ -14,7 +14,7 @@ import platform
 import statistics
 import time
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Callable, Hashable, Sequence
 
 import torch
 
@@ -49,6 +49,19 @@ def time_call(fn: Callable[[], object], device: torch.device, reps: int, warmup:
             fn()
             samples.append((time.perf_counter() - t0) * 1e3)
     return Timing(statistics.median(samples), min(samples), max(samples), reps)
+
+
+def interleaved_medians(calls: dict[Hashable, Callable[[], object]], device: torch.device,
+                        reps: int) -> dict[Hashable, float]:
+    """Median ms of each call over ``reps`` rounds that run every call once in turn (after one untimed
+    warm-up each), so that a machine's load drifting during the benchmark affects all of them alike."""
+    for call in calls.values():
+        call()
+    samples: dict[Hashable, list[float]] = {name: [] for name in calls}
+    for _ in range(reps):
+        for name, call in calls.items():
+            samples[name].append(time_call(call, device, 1, warmup=0).median_ms)
+    return {name: statistics.median(values) for name, values in samples.items()}
 
 
 def cuda_kernel_times(fn: Callable[[], object], device: torch.device, reps: int) -> list[tuple[str, float, float]]:

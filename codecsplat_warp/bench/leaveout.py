@@ -6,7 +6,7 @@ a. **Pruning decoded Gaussians** (:mod:`codecsplat_warp.model.prune`) on real sc
    many are transparent / outside every target frustum, the prune time, the median time of rendering the
    targets with all and with the kept Gaussians, the PLY bytes of both, and the largest difference between
    the two renders (must be float rounding at most: pruning leaves out only what contributes nothing).
-   All timings of a, b and c are medians of interleaved rounds (:func:`interleaved_medians`).
+   All timings of a, b and c are medians of interleaved rounds (:func:`~codecsplat_warp.bench.common.interleaved_medians`).
 b. **Rasterizer work follows visible Gaussians**: a ``bench raster`` scene (``--offscreen-workload``, default
    the RE10K-like one; also used by c) with 90 % of its Gaussians moved off-screen (behind the camera, or four
    image widths beside it) against all visible; forward and forward+backward time ratios. Target (issue 8):
@@ -32,9 +32,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import statistics
 import sys
-from typing import Callable, Hashable
 
 import torch
 from tqdm.auto import tqdm
@@ -47,7 +45,7 @@ from ..export.ply import encode_ply
 from ..model.pretrained import load_pretrained
 from ..model.prune import prune_gaussians
 from ..ops.raster import project_gaussians, rasterize
-from .common import cuda_kernel_ms, format_table, machine_name, time_call
+from .common import cuda_kernel_ms, format_table, interleaved_medians, machine_name
 from .raster import WORKLOADS, Workload, make_scene, ours_forward, ours_forward_backward
 
 OFFSCREEN_FRACTION = 0.9
@@ -150,19 +148,6 @@ def _scene_paths(data: str | None, names: str | None, default_count: int) -> lis
         return select_scenes(found, tuple(n.strip() for n in names.split(",") if n.strip()))
     count = min(default_count, len(found))
     return [found[round(i * (len(found) - 1) / max(1, count - 1))] for i in range(count)]
-
-
-def interleaved_medians(calls: dict[Hashable, Callable[[], object]], device: torch.device,
-                        reps: int) -> dict[Hashable, float]:
-    """Median ms of each call over ``reps`` rounds that run every call once in turn (after one untimed
-    warm-up each), so that a machine's load drifting during the benchmark affects all of them alike."""
-    for call in calls.values():
-        call()
-    samples: dict[Hashable, list[float]] = {name: [] for name in calls}
-    for _ in range(reps):
-        for name, call in calls.items():
-            samples[name].append(time_call(call, device, 1, warmup=0).median_ms)
-    return {name: statistics.median(values) for name, values in samples.items()}
 
 
 # --------------------------------------------------------------------------------------------------

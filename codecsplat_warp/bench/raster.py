@@ -10,8 +10,8 @@ smooth random depth field in [1.5, 9], per-axis scale ``depth / f * U(0.6, 1.4)`
 For each workload: median ms of forward (no grad) and forward+backward (loss = weighted sum of rgb and
 depth), peak memory of forward+backward (CUDA: torch allocator delta, Warp's own pool reported apart; CPU:
 peak RSS growth in a fresh process), intersection count, and -- on CUDA with gsplat importable --
-gsplat's ``rasterization(packed=False, render_mode="RGB+ED")`` on the same inputs, its times and the PSNR of
-our RGB against its RGB. A small scene is also compared with the dense torch reference (time and max error).
+gsplat's ``rasterization(packed=False, render_mode="RGB+ED")`` on the same inputs, its times (ours and gsplat's
+calls timed in interleaved rounds) and the PSNR of our RGB against its RGB. A small scene is also compared with the dense torch reference (time and max error).
 ``--scale`` keeps a random fraction of the Gaussians (quick CPU runs). ``--kernels N`` (CUDA) also lists the N
 kernels with the most GPU time per call for ours and gsplat's forward and forward+backward, from
 ``torch.profiler`` (stored per workload under ``kernels``).
@@ -31,7 +31,8 @@ from ..ops.raster import rasterize
 from ..reference.raster import rasterize_dense
 from ..synthetic import make_rig, smooth_depth
 from .common import (
-    cuda_kernel_times, cuda_peak_bytes, format_table, machine_name, rss_peak_growth_bytes, time_call,
+    cuda_kernel_times, cuda_peak_bytes, format_table, interleaved_medians, machine_name, rss_peak_growth_bytes,
+    time_call,
 )  # fmt: skip
 
 
@@ -190,33 +191,39 @@ def _gsplat_render(gsplat, args: list, scene: dict) -> torch.Tensor:
 
 
 def measure_workload(workload: Workload, device: torch.device, reps: int, scale: float, gsplat: dict | None) -> dict:
-    """Timings, memory and (with gsplat) the comparison for one workload; errors are recorded, not raised."""
+    """Timings, memory and (with gsplat) the comparison for one workload; errors are recorded, not raised.
+
+    Ours and gsplat's forward and forward+backward are timed in interleaved rounds
+    (:func:`~codecsplat_warp.bench.common.interleaved_medians`), so that a lent machine's drifting host speed
+    moves both sides of a ratio alike."""
     scene = make_scene(workload, device, scale)
     row = {"workload": workload.name, "gaussians": scene["means"].shape[0], "size": f"{workload.height}x{workload.width}",
            "reps": reps}  # fmt: skip
+    calls = {"fwd_ms": lambda: ours_forward(scene), "fwd_bwd_ms": lambda: ours_forward_backward(scene)}
     try:
         rgb, _, _, meta = ours_forward(scene)
         row["intersections"] = meta.intersection_count
-        row["fwd_ms"] = time_call(lambda: ours_forward(scene), device, reps).median_ms
-        row["fwd_bwd_ms"] = time_call(lambda: ours_forward_backward(scene), device, reps).median_ms
-        row.update(_peak_memory(device, scene))
+        ours_forward_backward(scene)
     except Exception as exc:  # noqa: BLE001 - a benchmark reports failures and goes on
         row["error"] = f"warp: {type(exc).__name__}: {exc}"
         traceback.print_exc()
         return row
-    if gsplat is None or gsplat.get("rasterization") is None:
-        return row
-    try:
-        theirs = gsplat_forward(gsplat, scene)[..., :3]
-        row["psnr_vs_gsplat_db"] = _psnr(rgb, theirs)
-        row["gsplat_fwd_ms"] = time_call(lambda: gsplat_forward(gsplat, scene), device, reps).median_ms
-        row["gsplat_fwd_bwd_ms"] = time_call(lambda: gsplat_forward_backward(gsplat, scene), device, reps).median_ms
+    if gsplat is not None and gsplat.get("rasterization") is not None:
+        try:
+            theirs = gsplat_forward(gsplat, scene)[..., :3]
+            gsplat_forward_backward(gsplat, scene)
+            row["psnr_vs_gsplat_db"] = _psnr(rgb, theirs)
+            calls.update(gsplat_fwd_ms=lambda: gsplat_forward(gsplat, scene),
+                         gsplat_fwd_bwd_ms=lambda: gsplat_forward_backward(gsplat, scene))  # fmt: skip
+        except Exception as exc:  # noqa: BLE001
+            row["error"] = f"gsplat: {type(exc).__name__}: {exc}"
+            traceback.print_exc()
+    row.update(interleaved_medians(calls, device, reps))
+    row.update(_peak_memory(device, scene))
+    if "gsplat_fwd_ms" in row:
         row["gsplat_peak_mib"] = cuda_peak_bytes(lambda: gsplat_forward_backward(gsplat, scene), device) / 2**20
         row["ratio_fwd"] = row["fwd_ms"] / row["gsplat_fwd_ms"]
         row["ratio_fwd_bwd"] = row["fwd_bwd_ms"] / row["gsplat_fwd_bwd_ms"]
-    except Exception as exc:  # noqa: BLE001
-        row["error"] = f"gsplat: {type(exc).__name__}: {exc}"
-        traceback.print_exc()
     return row
 
 
