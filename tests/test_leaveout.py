@@ -12,7 +12,9 @@ import sys
 import pytest
 import torch
 
-from codecsplat_warp.bench.leaveout import NAIVE_VIEW_SLOTS, RENDER_TOLERANCE, move_offscreen, naive_layout
+from codecsplat_warp.bench.leaveout import (
+    NAIVE_VIEW_SLOTS, RENDER_TOLERANCE, move_offscreen, naive_layout, visible_subset,
+)  # fmt: skip
 from codecsplat_warp.bench.raster import Workload, make_scene, ours_forward
 from codecsplat_warp.cli import EXIT_OK, EXIT_USER, main
 from codecsplat_warp.codec import bytes_report, pack_bitstream
@@ -54,9 +56,13 @@ def test_offscreen_scene_culls_exactly_the_moved_gaussians():
         moved_scene = move_offscreen(scene, placement, fraction=0.9, seed=1)
         moved = (moved_scene["means"] != scene["means"]).any(dim=-1)
         assert int(moved.sum()) == round(0.9 * len(moved))
-        radii = ours_forward(moved_scene)[3].radii[0].any(dim=-1)
+        rgb, _, _, meta = ours_forward(moved_scene)
+        radii = meta.radii[0].any(dim=-1)
         assert not bool(radii[moved].any()), placement
         assert torch.equal(radii[~moved], full_radii[~moved])
+        subset = visible_subset(scene, fraction=0.9, seed=1)
+        assert torch.equal(subset["means"], scene["means"][~moved])
+        assert torch.equal(ours_forward(subset)[0], rgb), placement  # the moved Gaussians contribute nothing
     with pytest.raises(ValueError, match="placement"):
         move_offscreen(scene, "above")
 
@@ -79,6 +85,7 @@ def test_quick_benchmark_on_a_real_scene(data_root):
     assert [r["placement"] for r in result["offscreen"]] == ["behind", "beside"]
     for row in result["offscreen"]:
         assert row["visible"] <= 0.1 * row["gaussians"] + 1 and row["ratio_fwd"] > 0 and row["ratio_fwd_bwd"] > 0
+        assert row["vs_visible_only_fwd"] > 0 and row["vs_visible_only_fwd_bwd"] > 0
     assert [r["case"] for r in result["sh_and_depth"]][1:3] == ["SH degree 3 (K=16)", "K=16 at sh_degree=0"]
     (bitstream,) = result["bitstream"]
     assert bitstream["saved"] == bitstream["naive_bytes"] - bitstream["bytes"] > NAIVE_VIEW_SLOTS
