@@ -8,8 +8,8 @@ block stages ``batch`` projected rows of its tile's depth-sorted list in shared 
 ids, then ``tile_load_indexed`` of the rows) and each thread walks the staged rows for its pixel. ``batch``
 is a compile-time constant of :func:`composite_kernels` (``block_dim`` on CUDA, small on the CPU where every
 one-pixel block stages its own copy). In the backward the lanes of a CUDA warp walk the rows in step and sum
-each row's gradient over the warp with shuffles (:func:`warp_sum`, a ``wp.func_native`` snippet that is the
-identity on the CPU's one-lane blocks) before one lane adds it to the row with atomics, as gsplat does: ten
+each row's gradient over the warp with shuffles (:func:`~codecsplat_warp.kernels.lanes.warp_sum`, a ``wp.func_native`` snippet
+that is the identity on the CPU's one-lane blocks) before one lane adds it to the row with atomics, as gsplat does: ten
 atomics per row and warp instead of up to 320.
 
 Constants are gsplat's: ``alpha = min(0.999, opacity * exp(-power))``; rows with ``power < 0`` or
@@ -35,6 +35,8 @@ from typing import Any
 
 import warp as wp
 
+from .lanes import WARP_SIZE, warp_any, warp_max, warp_sum
+
 wp.set_module_options({"enable_backward": False})
 
 ROWS = wp.constant(10)
@@ -51,73 +53,6 @@ MIN_ALPHA_FOR_DEPTH = 1.0e-10
 MAX_LANES = 256
 """Most CUDA threads a compositing block has: a 16x16 tile is one block; larger tiles take several (a 32x32 block of
 1,024 threads would ask for more registers than a multiprocessor has)."""
-
-WARP_SIZE = wp.constant(32)
-"""CUDA threads per warp: the lanes that :func:`warp_sum` and :func:`warp_any` reduce over."""
-
-_WARP_MASK = """
-const unsigned warp_lane = threadIdx.x & 31u;
-const unsigned warp_lanes = min(32u, blockDim.x - (threadIdx.x & ~31u));
-const unsigned warp_mask = warp_lanes == 32u ? 0xffffffffu : ((1u << warp_lanes) - 1u);
-"""
-
-_WARP_SUM = f"""
-auto total = value;
-#if defined(__CUDA_ARCH__)
-{_WARP_MASK}
-for (unsigned offset = 16u; offset > 0u; offset >>= 1u) {{
-    auto other = __shfl_down_sync(warp_mask, total, offset);
-    if (warp_lane + offset < warp_lanes) total += other;
-}}
-#endif
-return total;
-"""
-
-_WARP_ANY = f"""
-#if defined(__CUDA_ARCH__)
-{_WARP_MASK}
-return __any_sync(warp_mask, flag) ? 1 : 0;
-#else
-return flag;
-#endif
-"""
-
-
-@wp.func_native(_WARP_SUM)
-def warp_sum(value: wp.float32) -> wp.float32:
-    """Sum of ``value`` over the lanes of this thread's CUDA warp, valid in the warp's first lane; the value itself
-    on the CPU (one lane per block). Every lane of the warp must call it (no divergence)."""
-    ...
-
-
-@wp.func_native(_WARP_SUM)
-def warp_sum(value: wp.float64) -> wp.float64:  # noqa: F811 - the float64 overload
-    ...
-
-
-_WARP_MAX = f"""
-#if defined(__CUDA_ARCH__)
-{_WARP_MASK}
-return __reduce_max_sync(warp_mask, value);
-#else
-return value;
-#endif
-"""
-
-
-@wp.func_native(_WARP_MAX)
-def warp_max(value: int) -> int:
-    """Largest ``value`` over the lanes of this thread's CUDA warp, on every lane (on the CPU: ``value``); every
-    lane of the warp must call it."""
-    ...
-
-
-@wp.func_native(_WARP_ANY)
-def warp_any(flag: int) -> int:
-    """1 when ``flag`` is non-zero on any lane of this thread's CUDA warp (on the CPU: ``flag != 0``); every lane
-    of the warp must call it."""
-    ...
-
 
 @wp.func
 def tile_pixel(block: int, lane: int, blocks_per_tile: int, tile_size: int, tiles_x: int, tiles_per_image: int):

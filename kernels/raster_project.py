@@ -21,9 +21,9 @@ A pure translation: images are unchanged and the gradient of ``x - o`` is the id
 
 The ``project_gaussians`` kernel (see :func:`projection_kernels`) also culls (non-finite, z outside
 (near, far), det <= 0 after the blur, opacity < 1/255, off-screen), writes integer pixel radii from the
-opacity-aware extent ``min(3.33, sqrt(2 ln(255 opacity)))`` sigma, the number of tiles each row touches, and
-input validation flags. Its twin ``project_gaussians_differentiable`` recomputes only the differentiable row of
-the visible Gaussians and is launched with ``adjoint=True`` for the backward pass (straight-line code, so
+opacity-aware extent ``min(3.33, sqrt(2 ln(255 opacity)))`` sigma, the number of tiles each row touches,
+input validation flags and the list of visible rows. Its twin ``project_gaussians_differentiable`` recomputes
+only the differentiable row of the listed visible Gaussians and is launched with ``adjoint=True`` for the backward pass (straight-line code, so
 Warp's automatic adjoint is exact; a float64 gradcheck covers it).
 """
 
@@ -34,6 +34,7 @@ from typing import Any, NamedTuple
 
 import warp as wp
 
+from .lanes import warp_append
 from .raster_tiles import tile_rect
 from .sh import sh_color
 
@@ -223,6 +224,7 @@ def prepare_cameras(
     out_Ks: wp.array3d(dtype=Any),
     origin: wp.array(dtype=Any),
     flags: wp.array(dtype=wp.int64),
+    visible_count: wp.array(dtype=wp.int64),
 ):
     """Validate the cameras, cast them to the Gaussians' dtype and make them camera-relative (``dim=1``).
 
@@ -234,10 +236,12 @@ def prepare_cameras(
         out_Ks: ``[B,3,3]`` the intrinsics in the output dtype; origin: ``[3]`` the mean camera centre rounded
             to the output dtype (world units), or 0.
         flags: ``[NUM_FLAGS]`` validation counters: camera and background slots set, Gaussian slots zeroed.
+        visible_count: ``[1]`` int64, zeroed (the length of the projection's visible-row list).
     """
     num = viewmats.shape[0]
     for slot in range(NUM_FLAGS):
         flags[slot] = wp.int64(0)
+    visible_count[0] = wp.int64(0)
     bad_background = wp.int64(0)
     for b in range(background.shape[0]):
         for c in range(3):
@@ -340,6 +344,8 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         radii: wp.array(dtype=wp.vec2i),
         tile_counts: wp.array(dtype=wp.int64),
         flags: wp.array(dtype=wp.int64),
+        visible_count: wp.array(dtype=wp.int64),
+        visible_rows: wp.array(dtype=wp.int32),
     ):
         """Project, cull and bin-count every (camera b, Gaussian n); launch with ``dim=(B, N)``.
 
@@ -355,6 +361,9 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
             splats: output rows ``[B*N, 10]``; radii: ``[B*N]`` pixel radii (0 = culled);
             tile_counts: ``[B*N]`` int64 tiles touched; flags: ``[NUM_FLAGS]`` validation counters (Gaussian slots
                 zeroed by :func:`prepare_cameras`).
+            visible_count: ``[1]`` int64 (zeroed by :func:`prepare_cameras`), visible_rows: ``[B*N]`` int32: the
+                first ``visible_count[0]`` entries receive the flat index of every visible row, in no particular
+                order (the list the differentiable twin walks, so that its work follows the visible Gaussians).
         """
         b, n = wp.tid()
         num = means.shape[0]
@@ -412,6 +421,7 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         rect = tile_rect(mean2d[0], mean2d[1], radius, tile_size, tiles_x, tiles_y)
         radii[i] = radius
         tile_counts[i] = wp.int64((rect[2] - rect[0]) * (rect[3] - rect[1]))
+        visible_rows[warp_append(visible_count, 0)] = i
 
     @wp.kernel(module="unique", launch_bounds=DIFFERENTIABLE_LAUNCH_BOUNDS)
     def project_gaussians_differentiable(
@@ -423,7 +433,8 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         viewmats: wp.array(dtype=Any),
         Ks: wp.array(dtype=Any),
         origin: wp.array(dtype=Any),
-        radii: wp.array(dtype=wp.vec2i),
+        visible_count: wp.array(dtype=wp.int64),
+        visible_rows: wp.array(dtype=wp.int32),
         sh_degree: int,
         width: int,
         height: int,
@@ -431,15 +442,20 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         antialiased: int,
         splats: wp.array2d(dtype=Any),
     ):
-        """The differentiable part of :func:`project_gaussians` for rows with non-zero radii (``dim=(B, N)``).
+        """The differentiable part of :func:`project_gaussians` for the visible rows it listed (``dim=B*N``: thread
+        ``t < visible_count[0]`` takes row ``visible_rows[t]``, the others return at once).
 
         Launch with ``adjoint=True``, ``adj_outputs`` = gradient of the rows, to get gradients of means,
-        quats, scales, opacities and coeffs (accumulated over cameras). Culled rows get no gradient.
+        quats, scales, opacities and coeffs (accumulated over cameras). Culled rows get no gradient. Walking the
+        list instead of all ``(b, n)`` keeps a warp from running the adjoint because one of its 32 Gaussians is
+        visible: with 90 % of the Gaussians off-screen nearly every warp would.
         """
-        b, n = wp.tid()
-        i = b * means.shape[0] + n
-        if radii[i][0] == 0 and radii[i][1] == 0:
+        t = wp.tid()
+        if wp.int64(t) >= visible_count[0]:
             return
+        i = visible_rows[t]
+        b = i // means.shape[0]
+        n = i - b * means.shape[0]
         mean = means[n] - wp.vector(origin[0], origin[1], origin[2])
         opacity = opacities[n]
         viewmat = viewmats[b]

@@ -356,6 +356,28 @@ def test_culled_rows_are_never_read_and_zeroed_only_for_projection(monkeypatch):
         assert torch.equal(field[0][culled], torch.zeros_like(field[0][culled]))
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_projection_lists_each_visible_row_once(device):
+    """The projection appends every visible row (non-zero radii) exactly once to the list that the projection
+    backward walks (a warp-aggregated append on CUDA, in no particular order), for two cameras that see different
+    Gaussians; culled rows are not listed."""
+    import codecsplat_warp.ops.raster as raster_ops
+
+    means, quats, scales, opacities, colors, viewmats, Ks = make_scene(300, 24, 20, seed=5)
+    means[::3, 2] *= -1.0
+    viewmats = viewmats.expand(2, 4, 4).clone()
+    viewmats[1, 0, 3] += 0.5
+    inputs = [t.to(device) for t in (means, quats, scales, opacities, colors, viewmats, Ks.expand(2, 3, 3))]
+    checked = raster_ops._prepare(*inputs, 24, 20, 0.01, 1e10, None, "classic", None, True, 16, 1e-4)
+    means, quats, scales, opacities, colors, viewmats, Ks, background, settings = checked
+    outputs, saved = raster_ops._render(means, quats, scales, opacities, colors, background, viewmats, Ks, settings,
+                                        raster_ops.DEFAULT_MAX_INTERSECTION_BYTES)  # fmt: skip
+    visible = outputs[3].reshape(-1, 2).any(dim=-1).nonzero().flatten().cpu()
+    listed = saved.visible.rows[: int(saved.visible.count)].cpu().to(torch.int64)
+    assert 100 < len(visible) < 600 and (visible < 300).any() and (visible >= 300).any()
+    assert torch.equal(listed.sort().values, visible)
+
+
 def test_too_many_tiles_for_the_sort_key_is_a_typed_error():
     means, quats, scales, opacities, colors, viewmats, Ks = make_scene(2, 16, 16)
     two_cameras = viewmats.expand(2, 4, 4), Ks.expand(2, 3, 3)

@@ -133,8 +133,26 @@ def _rows_and_cameras(means: torch.Tensor, num_cameras: int) -> tuple[torch.Tens
     return rows, _Cameras(means.new_empty(B, 4, 4), means.new_empty(B, 3, 3), means.new_empty(3))
 
 
-def _prepare_cameras(viewmats, Ks, background, cameras: _Cameras, flags: torch.Tensor, wdev) -> None:
-    """Launch :func:`~codecsplat_warp.kernels.raster_project.prepare_cameras`; it also initialises ``flags``.
+class _Visible(NamedTuple):
+    """The projection's list of visible rows, which the projection backward walks (uninitialised until the
+    projection fills it).
+
+    Attributes:
+        count: ``[1]`` int64 length of the list; rows: ``[B*N]`` int32 flat row indices, the first ``count`` valid.
+    """
+
+    count: torch.Tensor
+    rows: torch.Tensor
+
+
+def _visible_list(means: torch.Tensor, rows: int) -> _Visible:
+    return _Visible(means.new_empty(1, dtype=torch.int64), means.new_empty(rows, dtype=torch.int32))
+
+
+def _prepare_cameras(viewmats, Ks, background, cameras: _Cameras, flags: torch.Tensor, visible: _Visible,
+                     wdev) -> None:  # fmt: skip
+    """Launch :func:`~codecsplat_warp.kernels.raster_project.prepare_cameras`; it also initialises ``flags`` and
+    the length of the ``visible`` list.
 
     Args:
         viewmats: ``[B,4,4]``, Ks: ``[B,3,3]`` as given (float32 or float64); background: ``[B,3]`` or ``[0,3]``.
@@ -145,7 +163,8 @@ def _prepare_cameras(viewmats, Ks, background, cameras: _Cameras, flags: torch.T
     launch(
         raster_project.prepare_cameras,
         1,
-        [viewmats, Ks, background, int(dtype != torch.float64), cameras.viewmats, cameras.Ks, cameras.origin, flags],
+        [viewmats, Ks, background, int(dtype != torch.float64), cameras.viewmats, cameras.Ks, cameras.origin, flags,
+         visible.count],  # fmt: skip
         wdev,
         layout=(viewmats.dtype, Ks.dtype, dtype),
     )
@@ -165,9 +184,10 @@ _ZERO = {dtype: warp_dtype(dtype)(0.0) for dtype in FLOAT_DTYPES}
 
 
 def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, settings: _Settings, splats: torch.Tensor,
-             tile_counts: torch.Tensor, flags: torch.Tensor, wdev, zero_culled: bool = False) -> torch.Tensor:  # fmt: skip
+             tile_counts: torch.Tensor, flags: torch.Tensor, visible: _Visible, wdev,
+             zero_culled: bool = False) -> torch.Tensor:  # fmt: skip
     """Fill the projected rows ``splats [B*N, 10]`` (rows of culled Gaussians only with ``zero_culled``, else left
-    as they were), ``tile_counts [B*N]`` and ``flags``; return radii ``[B*N, 2]`` int32."""
+    as they were), ``tile_counts [B*N]``, ``flags`` and the ``visible`` list; return radii ``[B*N, 2]`` int32."""
     dtype = means.dtype
     scalar = warp_dtype(dtype)
     radii = tile_counts.new_empty(splats.shape[0], 2, dtype=torch.int32)
@@ -191,6 +211,8 @@ def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, setting
             vectors(radii),
             tile_counts,
             flags,
+            visible.count,
+            visible.rows,
         ],
         wdev,
         layout=dtype,
@@ -198,10 +220,11 @@ def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, setting
     return radii
 
 
-def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, cameras: _Cameras, radii,
+def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, cameras: _Cameras, visible: _Visible,
                       settings: _Settings, wdev) -> list[torch.Tensor]:  # fmt: skip
     """Gradients of means ``[N,3]``, quats ``[N,4]``, scales ``[N,3]``, opacities ``[N]`` and coeffs ``[N,K,3]``
-    from the gradient of the projected rows ``[B*N, 10]`` (views of one zero-initialised buffer)."""
+    from the gradient of the projected rows ``[B*N, 10]`` (views of one zero-initialised buffer); one thread per
+    row of the ``visible`` list."""
     B, (N, K) = cameras.viewmats.shape[0], coeffs.shape[:2]
     dtype = means.dtype
     sizes = (3 * N, 4 * N, 3 * N, N, 3 * K * N)
@@ -209,13 +232,14 @@ def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, camera
     grads = [flat[0].view(N, 3), flat[1].view(N, 4), flat[2].view(N, 3), flat[3], flat[4].view(N, K, 3)]
     zero = _ZERO[dtype]
     adj_args = [vectors(grads[0]), vectors(grads[1]), vectors(grads[2]), grads[3], vectors(grads[4]), None, None, None,
-                None, 0, 0, 0, zero, 0, grad_rows]  # fmt: skip
+                None, None, 0, 0, 0, zero, 0, grad_rows]  # fmt: skip
     launch(
         raster_project.projection_kernels(settings.sh_degree >= 0).differentiable,
-        (B, N),
+        B * N,
         [
             *_projection_inputs(means, quats, scales, opacities, coeffs, cameras),
-            vectors(radii),
+            visible.count,
+            visible.rows,
             settings.sh_degree,
             settings.width,
             settings.height,
@@ -240,22 +264,24 @@ class _ProjectGaussians(torch.autograd.Function):
             (B * N, raster_project.NUM_FLAGS)
         )
         splats, cameras = _rows_and_cameras(means, B)
+        visible = _visible_list(means, B * N)
         with warp_scope(means.device) as wdev:
-            _prepare_cameras(viewmats, Ks, _absent(means, 3), cameras, flags, wdev)
+            _prepare_cameras(viewmats, Ks, _absent(means, 3), cameras, flags, visible, wdev)
             radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, flags,
-                             wdev, zero_culled=True)  # fmt: skip
+                             visible, wdev, zero_culled=True)  # fmt: skip
         ctx.settings = settings
         ctx.cameras = cameras
-        ctx.save_for_backward(means, quats, scales, opacities, coeffs, radii)
+        ctx.visible = visible
+        ctx.save_for_backward(means, quats, scales, opacities, coeffs)
         ctx.mark_non_differentiable(radii, flags)
         return splats.view(B, N, raster_project.ROW_WIDTH), radii.view(B, N, 2), flags
 
     @staticmethod
     def backward(ctx, grad_splats, _grad_radii, _grad_flags):
-        means, quats, scales, opacities, coeffs, radii = ctx.saved_tensors
+        means, quats, scales, opacities, coeffs = ctx.saved_tensors
         grad_rows = grad_splats.reshape(-1, raster_project.ROW_WIDTH).contiguous()
         with warp_scope(means.device) as wdev:
-            grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs, ctx.cameras, radii,
+            grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs, ctx.cameras, ctx.visible,
                                       ctx.settings, wdev)  # fmt: skip
         return (*grads, None, None, None)
 
@@ -305,14 +331,15 @@ class _Saved(NamedTuple):
 
     Attributes:
         colors_or_black: ``[B,3]`` background or ``[0,3]``; cameras: the prepared cameras; splats: projected rows
-        ``[B*N, 10]``; radii: ``[B*N, 2]`` int32; ranges: ``[B*tiles, 2]`` int32; sorted_ids: ``[count]`` int32; state: ``[P,2]`` (final T,
-        accumulated depth); last: ``[P]`` int32; composite: the compositing launch.
+        ``[B*N, 10]``; visible: the projection's list of visible rows; ranges: ``[B*tiles, 2]`` int32; sorted_ids:
+        ``[count]`` int32; state: ``[P,2]`` (final T, accumulated depth); last: ``[P]`` int32; composite: the
+        compositing launch.
     """
 
     colors_or_black: torch.Tensor
     cameras: _Cameras
     splats: torch.Tensor
-    radii: torch.Tensor
+    visible: _Visible
     ranges: torch.Tensor
     sorted_ids: torch.Tensor
     state: torch.Tensor
@@ -331,9 +358,11 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
     ints = means.new_empty(2 * B * N + raster_project.NUM_FLAGS, dtype=torch.int64)
     tile_counts, offsets, flags = ints.split_with_sizes((B * N, B * N, raster_project.NUM_FLAGS))
     splats, cameras = _rows_and_cameras(means, B)
+    visible = _visible_list(means, B * N)
     with warp_scope(device) as wdev:
-        _prepare_cameras(viewmats, Ks, colors_or_black, cameras, flags, wdev)
-        radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, flags, wdev)
+        _prepare_cameras(viewmats, Ks, colors_or_black, cameras, flags, visible, wdev)
+        radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, flags,
+                         visible, wdev)  # fmt: skip
         torch.cumsum(tile_counts, 0, out=offsets)
         # everything whose size does not depend on the count is allocated (and zeroed) before the sync
         ranges = tile_counts.new_zeros(B * settings.tiles_x * settings.tiles_y, 2, dtype=torch.int32)
@@ -351,7 +380,7 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
     H, W = settings.height, settings.width
     depth = depth.view(B, H, W, 1) if settings.render_depth else None
     outputs = (color.view(B, H, W, 3), depth, alpha.view(B, H, W, 1), radii.view(B, N, 2), count)
-    return outputs, _Saved(colors_or_black, cameras, splats, radii, ranges, sorted_ids, state, last, composite)
+    return outputs, _Saved(colors_or_black, cameras, splats, visible, ranges, sorted_ids, state, last, composite)
 
 
 class _Rasterize(torch.autograd.Function):
@@ -390,7 +419,7 @@ class _Rasterize(torch.autograd.Function):
                 launch(composite.kernels[1], composite.blocks, [*common, saved.state, saved.last, *output_grads,
                        grad_rows], wdev, block_dim=composite.block_dim, layout=means.dtype)  # fmt: skip
                 grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs, saved.cameras,
-                                          saved.radii, settings, wdev)  # fmt: skip
+                                          saved.visible, settings, wdev)  # fmt: skip
             grads[4] = grads[4].view(ctx.colors_shape)
         grad_background = None
         if ctx.needs_input_grad[5] and grad_color is not None:

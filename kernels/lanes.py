@@ -1,0 +1,103 @@
+"""CUDA warp-level helpers for Warp kernels (``wp.func_native`` snippets), each also correct on the CPU.
+
+Warp's CPU backend runs a tiled launch with one lane per block and a plain launch one thread at a time, so on
+the CPU every helper reduces over a single lane: :func:`warp_sum`, :func:`warp_max` and :func:`warp_any` return
+their argument, :func:`warp_append` is an atomic increment. On CUDA they act on the lanes of the calling
+thread's 32-thread warp (a partial last warp of a block included).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+WARP_SIZE = wp.constant(32)
+"""CUDA threads per warp: the lanes that :func:`warp_sum`, :func:`warp_max` and :func:`warp_any` reduce over."""
+
+_WARP_MASK = """
+const unsigned warp_lane = threadIdx.x & 31u;
+const unsigned warp_lanes = min(32u, blockDim.x - (threadIdx.x & ~31u));
+const unsigned warp_mask = warp_lanes == 32u ? 0xffffffffu : ((1u << warp_lanes) - 1u);
+"""
+
+_WARP_SUM = f"""
+auto total = value;
+#if defined(__CUDA_ARCH__)
+{_WARP_MASK}
+for (unsigned offset = 16u; offset > 0u; offset >>= 1u) {{
+    auto other = __shfl_down_sync(warp_mask, total, offset);
+    if (warp_lane + offset < warp_lanes) total += other;
+}}
+#endif
+return total;
+"""
+
+_WARP_ANY = f"""
+#if defined(__CUDA_ARCH__)
+{_WARP_MASK}
+return __any_sync(warp_mask, flag) ? 1 : 0;
+#else
+return flag;
+#endif
+"""
+
+
+@wp.func_native(_WARP_SUM)
+def warp_sum(value: wp.float32) -> wp.float32:
+    """Sum of ``value`` over the lanes of this thread's CUDA warp, valid in the warp's first lane; the value itself
+    on the CPU (one lane per block). Every lane of the warp must call it (no divergence)."""
+    ...
+
+
+@wp.func_native(_WARP_SUM)
+def warp_sum(value: wp.float64) -> wp.float64:  # noqa: F811 - the float64 overload
+    ...
+
+
+_WARP_MAX = f"""
+#if defined(__CUDA_ARCH__)
+{_WARP_MASK}
+return __reduce_max_sync(warp_mask, value);
+#else
+return value;
+#endif
+"""
+
+
+@wp.func_native(_WARP_MAX)
+def warp_max(value: int) -> int:
+    """Largest ``value`` over the lanes of this thread's CUDA warp, on every lane (on the CPU: ``value``); every
+    lane of the warp must call it."""
+    ...
+
+
+@wp.func_native(_WARP_ANY)
+def warp_any(flag: int) -> int:
+    """1 when ``flag`` is non-zero on any lane of this thread's CUDA warp (on the CPU: ``flag != 0``); every lane
+    of the warp must call it."""
+    ...
+
+
+_WARP_APPEND = """
+#if defined(__CUDA_ARCH__)
+const unsigned active = __activemask();
+const unsigned lane = threadIdx.x & 31u;
+const int leader = __ffs(active) - 1;
+unsigned long long base = 0ull;
+if (static_cast<int>(lane) == leader)
+    base = atomicAdd(reinterpret_cast<unsigned long long*>(counters.data) + slot,
+                     static_cast<unsigned long long>(__popc(active)));
+base = __shfl_sync(active, base, leader);
+return static_cast<wp::int32>(base + __popc(active & ((1u << lane) - 1u)));
+#else
+return static_cast<wp::int32>(__atomic_fetch_add(counters.data + slot, static_cast<wp::int64>(1), __ATOMIC_RELAXED));
+#endif
+"""
+
+
+@wp.func_native(_WARP_APPEND)
+def warp_append(counters: wp.array(dtype=wp.int64), slot: int) -> int:
+    """Claim the next free index of a list whose length is ``counters[slot]``: returns the old count and adds 1.
+    On CUDA the lanes of a warp that call it together claim consecutive indices with one atomic (a warp-aggregated
+    append: the order within and between warps is unspecified); on the CPU it is one atomic increment. Lanes need
+    not call it together."""
+    ...
