@@ -23,8 +23,8 @@ The ``project_gaussians`` kernel (see :func:`projection_kernels`) also culls (no
 (near, far), det <= 0 after the blur, opacity < 1/255, off-screen), writes integer pixel radii from the
 opacity-aware extent ``min(3.33, sqrt(2 ln(255 opacity)))`` sigma, the number of tiles each row touches,
 input validation flags and the list of visible rows. Its twin ``project_gaussians_differentiable`` recomputes
-only the differentiable row of the listed visible Gaussians and is launched with ``adjoint=True`` for the backward pass (straight-line code, so
-Warp's automatic adjoint is exact; a float64 gradcheck covers it).
+only the differentiable row of the listed visible Gaussians and is launched with ``adjoint=True`` for the
+backward pass (straight-line code, so Warp's automatic adjoint is exact; a float64 gradcheck covers it).
 """
 
 from __future__ import annotations

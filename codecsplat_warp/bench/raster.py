@@ -11,7 +11,8 @@ For each workload: median ms of forward (no grad) and forward+backward (loss = w
 depth), peak memory of forward+backward (CUDA: torch allocator delta, Warp's own pool reported apart; CPU:
 peak RSS growth in a fresh process), intersection count, and -- on CUDA with gsplat importable --
 gsplat's ``rasterization(packed=False, render_mode="RGB+ED")`` on the same inputs, its times (ours and gsplat's
-calls timed in interleaved rounds) and the PSNR of our RGB against its RGB. A small scene is also compared with the dense torch reference (time and max error).
+calls timed in interleaved rounds) and the PSNR of our RGB against its RGB. A small scene is also compared with
+the dense torch reference (time and max error).
 ``--scale`` keeps a random fraction of the Gaussians (quick CPU runs). ``--kernels N`` (CUDA) also lists the N
 kernels with the most GPU time per call for ours and gsplat's forward and forward+backward, from
 ``torch.profiler`` (stored per workload under ``kernels``).
