@@ -40,7 +40,7 @@ from ..cameras import Cameras, intrinsics_matrix, rigid_inverse
 from ..errors import CameraError, InputError
 from ..model.heads import depth_from_normalized, normalized_from_depth
 from ..ops.geometry import all_other_views, plane_sweep_cost_volume, reproject_average, unproject
-from ..ops.raster import rasterize
+from ..ops.raster import GAUSSIAN_ARGUMENTS, rasterize
 from ..reference.geometry import cost_volume_reference, reproject_average_reference, unproject_reference
 from ..reference.raster import rasterize_dense
 from ..synthetic import make_rig, random_gaussians, rotation, smooth_depth
@@ -289,9 +289,6 @@ def with_value(problem: Problem, name: str, value: float, index=(0, 0, 0)) -> Pr
 
 # --------------------------------------------------------------------------------------------------
 # Problem builders: rasterizer
-RASTER_NAMES = ("means", "quats", "scales", "opacities", "colors")
-
-
 def raster_problem(n: int = 24, width: int = 16, height: int = 16, sh_degree: int | None = None, seed: int = 0,
                    background: bool = True, edit: Callable[[dict], None] | None = None,
                    **options) -> Problem:  # fmt: skip
@@ -299,12 +296,13 @@ def raster_problem(n: int = 24, width: int = 16, height: int = 16, sh_degree: in
 
     ``edit`` changes the dict of tensors (``means ... colors, viewmats, Ks``) in place before the split.
     """
-    tensors = dict(zip((*RASTER_NAMES, "viewmats", "Ks"), random_gaussians(n, width, height, 1, sh_degree, seed=seed)))
+    generated = random_gaussians(n, width, height, 1, sh_degree, seed=seed)
+    tensors = dict(zip((*GAUSSIAN_ARGUMENTS, "viewmats", "Ks"), generated))
     if background:
         tensors["background"] = torch.tensor([[0.2, 0.4, 0.6]], dtype=torch.float64)
     if edit is not None:
         edit(tensors)
-    inputs = {k: tensors[k] for k in (*RASTER_NAMES, "background") if k in tensors}
+    inputs = {k: tensors[k] for k in (*GAUSSIAN_ARGUMENTS, "background") if k in tensors}
     grad = tuple(k for k in inputs if inputs[k].numel())
     return Problem(inputs, grad, {"viewmats": tensors["viewmats"], "Ks": tensors["Ks"]},
                    {"width": width, "height": height, **options})  # fmt: skip
@@ -360,7 +358,7 @@ def _on_one_pixel(n: int) -> Callable[[], Problem]:
             "colors": torch.rand(n, 3, generator=g, dtype=torch.float64),
         }  # fmt: skip
         K = torch.tensor([[[10.0, 0.0, 0.5], [0.0, 10.0, 0.5], [0.0, 0.0, 1.0]]], dtype=torch.float64)
-        return Problem(inputs, RASTER_NAMES, {"viewmats": torch.eye(4, dtype=torch.float64)[None], "Ks": K},
+        return Problem(inputs, GAUSSIAN_ARGUMENTS, {"viewmats": torch.eye(4, dtype=torch.float64)[None], "Ks": K},
                        {"width": 1, "height": 1})  # fmt: skip
 
     return build
@@ -447,7 +445,7 @@ def _first_scale(value: float) -> Callable[[dict], None]:
 
 
 def _no_gaussians(t: dict) -> None:
-    for k in RASTER_NAMES:
+    for k in GAUSSIAN_ARGUMENTS:
         t[k] = t[k][:0]
 
 

@@ -45,7 +45,7 @@ from ..evaluate import PROTOCOLS, Protocol, find_scenes, scene_samples, select_s
 from ..export.ply import encode_ply
 from ..model.pretrained import load_pretrained
 from ..model.prune import prune_gaussians
-from ..ops.raster import project_gaussians, rasterize
+from ..ops.raster import GAUSSIAN_ARGUMENTS, project_gaussians, rasterize
 from .common import cuda_kernel_ms, format_table, interleaved_medians, machine_name
 from .raster import WORKLOADS, Workload, make_scene, ours_forward, ours_forward_backward
 
@@ -261,7 +261,7 @@ def visible_subset(scene: dict, fraction: float = OFFSCREEN_FRACTION, seed: int 
     keep = torch.ones(scene["means"].shape[0], dtype=torch.bool)
     keep[offscreen_indices(len(keep), fraction, seed)] = False
     keep = keep.to(scene["means"].device)
-    return {**scene, **{k: scene[k][keep] for k in ("means", "quats", "scales", "opacities", "colors")}}
+    return {**scene, **{k: scene[k][keep] for k in GAUSSIAN_ARGUMENTS}}
 
 
 def measure_offscreen(scene: dict, device: torch.device, reps: int) -> list[dict]:

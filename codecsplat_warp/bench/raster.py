@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from ..ops.raster import rasterize
+from ..ops.raster import GAUSSIAN_ARGUMENTS, rasterize
 from ..reference.raster import rasterize_dense
 from ..synthetic import make_rig, smooth_depth
 from .common import (
@@ -155,7 +155,7 @@ def make_scene(workload: Workload, device: torch.device, scale: float = 1.0, see
 
 
 def _splat_args(scene: dict, requires_grad: bool) -> list:
-    tensors = [scene[k].detach().requires_grad_(requires_grad) for k in ("means", "quats", "scales", "opacities", "colors")]
+    tensors = [scene[k].detach().requires_grad_(requires_grad) for k in GAUSSIAN_ARGUMENTS]
     return [*tensors, scene["viewmats"], scene["Ks"]]
 
 

@@ -51,9 +51,10 @@ import torch
 from ..errors import CodecSplatError, DataError, InputError
 from ..export.files import atomic_output, write_text
 from ..ops.geometry import inverse_depth_candidates
+from ..ops.raster import GAUSSIAN_ARGUMENTS
 from ..synthetic import make_rig, smooth_depth
 from .common import format_table, machine_name, time_call, write_json
-from .extreme import COST_VOLUME, RASTER_NAMES, RASTERIZE, REPROJECT, UNPROJECT, Op, Problem, device_arguments
+from .extreme import COST_VOLUME, RASTERIZE, REPROJECT, UNPROJECT, Op, Problem, device_arguments
 from .extreme import forward_backward as _forward_backward
 from .extreme import reference_arguments
 from .geometry import SHAPES, Shape
@@ -173,8 +174,8 @@ def raster_problem(entry: Entry) -> Problem:
     """``bench raster``'s pixel-aligned scene at ``entry.size``, with the entry's tile size and mode."""
     workload = RASTER_SIZES[entry.size]
     scene = make_scene(workload, torch.device("cpu"))
-    inputs = {k: scene[k].double() for k in RASTER_NAMES}
-    return Problem(inputs, RASTER_NAMES, {"viewmats": scene["viewmats"].double(), "Ks": scene["Ks"].double()},
+    inputs = {k: scene[k].double() for k in GAUSSIAN_ARGUMENTS}
+    return Problem(inputs, GAUSSIAN_ARGUMENTS, {"viewmats": scene["viewmats"].double(), "Ks": scene["Ks"].double()},
                    {"width": scene["width"], "height": scene["height"], **dict(entry.options)})  # fmt: skip
 
 

@@ -54,6 +54,10 @@ DEFAULT_MIN_TRANSMITTANCE = 1e-4
 
 MODES = ("classic", "antialiased")
 
+GAUSSIAN_ARGUMENTS = ("means", "quats", "scales", "opacities", "colors")
+"""The names of :func:`rasterize`'s per-Gaussian arguments, in order (the differentiable inputs besides the
+background)."""
+
 _ARGUMENT_OF_FLAG = {
     raster_project.BAD_MEANS: "means",
     raster_project.BAD_QUATS: "quats",
