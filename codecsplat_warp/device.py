@@ -42,6 +42,7 @@ _TORCH_TO_WARP_DTYPE = {
     torch.float64: wp.float64,
     torch.int32: wp.int32,
     torch.int64: wp.int64,
+    torch.uint32: wp.uint32,
     torch.uint8: wp.uint8,
 }
 
@@ -76,7 +77,7 @@ def validation_enabled() -> bool:
 
 
 def warp_dtype(dtype: torch.dtype):
-    """Warp scalar type for a torch dtype (float32, float64, int32, int64, uint8)."""
+    """Warp scalar type for a torch dtype (float32, float64, int32, int64, uint32, uint8)."""
     try:
         return _TORCH_TO_WARP_DTYPE[dtype]
     except KeyError:
@@ -172,6 +173,11 @@ def to_warp(tensor: torch.Tensor, dtype=None):
 
     ``dtype`` may be a Warp vector/matrix type whose trailing dimension(s) the tensor provides.
     """
+    if tensor.dtype == torch.uint32:  # wp.from_torch does not take uint32 tensors (scalar elements only here)
+        array = wp.array(ptr=tensor.data_ptr(), dtype=wp.uint32, shape=tuple(tensor.shape),
+                         strides=tuple(4 * s for s in tensor.stride()), device=warp_device(tensor.device))  # fmt: skip
+        array._tensor = tensor  # keeps the memory alive, as wp.from_torch does
+        return array
     return wp.from_torch(tensor.detach(), dtype=dtype, requires_grad=False)
 
 
@@ -406,7 +412,7 @@ def _tensor(arg) -> torch.Tensor:
 
 
 def radix_sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_bit: int) -> None:
-    """Sort ``keys[:count]`` (int64) and ``values[:count]`` (int32) in place by key bits ``[0, end_bit)``.
+    """Sort ``keys[:count]`` (uint32 or int64) and ``values[:count]`` (int32) in place by key bits ``[0, end_bit)``.
 
     ``wp.utils.radix_sort_pairs`` on the tensors' memory, without wrapping them as ``wp.array`` (the native call
     that function makes); both tensors are contiguous with at least ``2 * count`` elements, the second half being
@@ -417,12 +423,16 @@ def radix_sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_b
     """
     if count == 0 or end_bit == 0:
         return
-    for name, tensor, dtype in (("keys", keys, torch.int64), ("values", values, torch.int32)):
-        if tensor.dtype != dtype or tensor.numel() < 2 * count or not tensor.is_contiguous():
-            raise InputError(f"radix sort {name} must be contiguous {dtype} with at least {2 * count} elements")
-    core = warp_context.runtime.core
-    sort = core.wp_radix_sort_pairs_int64_device if keys.is_cuda else core.wp_radix_sort_pairs_int64_host
+    for name, tensor, dtypes in (("keys", keys, _SORT_KEYS), ("values", values, (torch.int32,))):
+        if tensor.dtype not in dtypes or tensor.numel() < 2 * count or not tensor.is_contiguous():
+            raise InputError(f"radix sort {name} must be contiguous {' or '.join(map(str, dtypes))} with at least "
+                             f"{2 * count} elements")  # fmt: skip
+    sort = getattr(warp_context.runtime.core, _SORT_KEYS[keys.dtype] + ("_device" if keys.is_cuda else "_host"))
     sort(keys.data_ptr(), values.data_ptr(), count, 0, end_bit, 4)
+
+
+_SORT_KEYS = {torch.uint32: "wp_radix_sort_pairs_uint", torch.int64: "wp_radix_sort_pairs_int64"}
+"""Key dtypes :func:`radix_sort_pairs` takes, and the stem of Warp's native sort for each."""
 
 
 def row_chunks(rows: int, device: torch.device) -> list[tuple[int, int]]:

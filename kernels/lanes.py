@@ -101,3 +101,36 @@ def warp_append(counters: wp.array(dtype=wp.int64), slot: int) -> int:
     append: the order within and between warps is unspecified); on the CPU it is one atomic increment. Lanes need
     not call it together."""
     ...
+
+
+_WARP_FOLD_RANGE = """
+#if defined(__CUDA_ARCH__)
+const unsigned active = __activemask();
+const unsigned lane = threadIdx.x & 31u;
+const int leader = __ffs(active) - 1;
+const int low = __reduce_min_sync(active, value);
+const int high = __reduce_max_sync(active, value);
+if (static_cast<int>(lane) == leader) {
+    atomicMin(reinterpret_cast<long long*>(counters.data) + min_slot, static_cast<long long>(low));
+    atomicMax(reinterpret_cast<long long*>(counters.data) + max_slot, static_cast<long long>(high));
+}
+#else
+wp::int64* low = counters.data + min_slot;
+wp::int64 seen = __atomic_load_n(low, __ATOMIC_RELAXED);
+while (value < seen && !__atomic_compare_exchange_n(low, &seen, static_cast<wp::int64>(value), false,
+                                                    __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {}
+wp::int64* high = counters.data + max_slot;
+seen = __atomic_load_n(high, __ATOMIC_RELAXED);
+while (value > seen && !__atomic_compare_exchange_n(high, &seen, static_cast<wp::int64>(value), false,
+                                                    __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {}
+#endif
+"""
+
+
+@wp.func_native(_WARP_FOLD_RANGE)
+def warp_fold_range(counters: wp.array(dtype=wp.int64), min_slot: int, max_slot: int, value: int):
+    """Fold ``value`` into a running range: ``counters[min_slot] = min(counters[min_slot], value)`` and
+    ``counters[max_slot] = max(counters[max_slot], value)``. On CUDA the lanes of a warp that call it together
+    reduce first and one lane issues the two atomics; on the CPU each call is atomic. Lanes need not call it
+    together."""
+    ...

@@ -34,7 +34,7 @@ from typing import Any, NamedTuple
 
 import warp as wp
 
-from .lanes import warp_append
+from .lanes import warp_append, warp_fold_range
 from .raster_tiles import tile_rect
 from .sh import sh_color
 
@@ -48,10 +48,17 @@ ROW_WIDTH = 10
 """Scalars per projected row."""
 
 (BAD_MEANS, BAD_QUATS, BAD_SCALES, BAD_OPACITIES, BAD_COLORS, BAD_VIEWMATS, BAD_KS, BAD_BACKGROUND, ZERO_QUATS,
- HUGE_COVARIANCE) = range(10)
-"""Slots of the int64 validation flag array: non-finite rows per Gaussian argument, non-finite entries per
-camera argument, zero quaternions, covariances that overflow."""
-NUM_FLAGS = 10
+ HUGE_COVARIANCE, DEPTH_BITS_MIN, DEPTH_BITS_MAX) = range(12)
+"""Slots of the int64 flag array: non-finite rows per Gaussian argument, non-finite entries per camera argument,
+zero quaternions, covariances that overflow (the validation flags); then the smallest and largest float32 bit
+pattern of a visible row's depth (the range the sort key packs, see :mod:`.raster_tiles`)."""
+NUM_FLAGS = 12
+
+NO_DEPTH_BITS = 2**31 - 1
+"""Initial ``DEPTH_BITS_MIN`` (larger than any float32 bit pattern of a positive depth); ``DEPTH_BITS_MAX``
+starts at 0."""
+
+_NO_DEPTH_BITS = wp.constant(wp.int64(NO_DEPTH_BITS))
 
 
 @wp.func
@@ -235,12 +242,14 @@ def prepare_cameras(
         out_viewmats: ``[B,4,4]`` ``viewmats T(origin)`` composed in float64, in the output dtype;
         out_Ks: ``[B,3,3]`` the intrinsics in the output dtype; origin: ``[3]`` the mean camera centre rounded
             to the output dtype (world units), or 0.
-        flags: ``[NUM_FLAGS]`` validation counters: camera and background slots set, Gaussian slots zeroed.
+        flags: ``[NUM_FLAGS]`` counters: camera and background slots set, Gaussian slots zeroed, the depth range
+            empty (``NO_DEPTH_BITS``, 0).
         visible_count: ``[1]`` int64, zeroed (the length of the projection's visible-row list).
     """
     num = viewmats.shape[0]
     for slot in range(NUM_FLAGS):
         flags[slot] = wp.int64(0)
+    flags[DEPTH_BITS_MIN] = _NO_DEPTH_BITS
     visible_count[0] = wp.int64(0)
     bad_background = wp.int64(0)
     for b in range(background.shape[0]):
@@ -359,8 +368,8 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
             zero_culled: 1 to write zero rows for culled Gaussians; 0 leaves them unwritten (the rasterizer reads
                 only visible rows, and ten scattered stores per culled Gaussian cost more than the projection).
             splats: output rows ``[B*N, 10]``; radii: ``[B*N]`` pixel radii (0 = culled);
-            tile_counts: ``[B*N]`` int64 tiles touched; flags: ``[NUM_FLAGS]`` validation counters (Gaussian slots
-                zeroed by :func:`prepare_cameras`).
+            tile_counts: ``[B*N]`` int64 tiles touched; flags: ``[NUM_FLAGS]`` counters (initialised by
+                :func:`prepare_cameras`): validation counts, and the range of the visible depths' float32 bits.
             visible_count: ``[1]`` int64 (zeroed by :func:`prepare_cameras`), visible_rows: ``[B*N]`` int32: the
                 first ``visible_count[0]`` entries receive the flat index of every visible row, in no particular
                 order (the list the differentiable twin walks, so that its work follows the visible Gaussians).
@@ -422,6 +431,7 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         radii[i] = radius
         tile_counts[i] = wp.int64((rect[2] - rect[0]) * (rect[3] - rect[1]))
         visible_rows[warp_append(visible_count, 0)] = i
+        warp_fold_range(flags, DEPTH_BITS_MIN, DEPTH_BITS_MAX, wp.cast(wp.float32(p[2]), wp.int32))
 
     @wp.kernel(module="unique", launch_bounds=DIFFERENTIABLE_LAUNCH_BOUNDS)
     def project_gaussians_differentiable(

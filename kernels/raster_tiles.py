@@ -1,11 +1,14 @@
-"""Tile binning of projected Gaussians: tile rectangles, 64-bit sort keys and per-tile ranges.
+"""Tile binning of projected Gaussians: tile rectangles, sort keys and per-tile ranges.
 
-One intersection is one (camera, Gaussian, tile) triple. Its key is
-``[camera | tile | float32 depth bits]``: the depth's 31 low bits (a positive float32 has sign bit 0, and
-positive float32 values sort like their bit patterns), then the tile index in ``tile_bits`` bits, then
-the camera, so one radix sort over ``DEPTH_BITS + tile_bits + camera bits`` bits orders intersections by
-camera, then tile, then depth. The value is the flat index
-``camera * N + gaussian`` of the Gaussian's projected row.
+One intersection is one (camera, Gaussian, tile) triple. Its key is ``[flat tile | depth key]``: the flat tile
+index ``camera * tiles_per_image + tile`` above ``depth_bits`` bits of depth key, so one radix sort over the key's
+used bits orders intersections by camera, then tile, then depth. The depth key is
+``(float32 bits of depth - depth_base) >> depth_shift``: a positive float32 sorts like its bit pattern, and
+subtracting the smallest visible pattern (``depth_base``) keeps only the bits the depths of one call span. The
+caller picks ``depth_shift`` so that the key fits the key dtype (uint32 or int64); with ``depth_shift = s``
+depths within ``2^s`` float32 units in the last place of each other tie, and ties keep the order of the
+rows (the sort is stable). The value is the flat index ``camera * N + gaussian`` of the Gaussian's projected
+row.
 """
 
 from __future__ import annotations
@@ -15,11 +18,6 @@ from typing import Any
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
-
-DEPTH_BITS = 31
-"""Key bits below the tile index: a positive float32 depth without its (zero) sign bit."""
-
-_DEPTH_SHIFT = wp.constant(wp.int64(DEPTH_BITS))
 
 DEPTH_COLUMN = 9
 """Column of the projected row (see :mod:`codecsplat_warp.kernels.raster_project`) holding camera-space depth."""
@@ -42,6 +40,12 @@ def tile_rect(x: Any, y: Any, radius: wp.vec2i, tile_size: int, tiles_x: int, ti
     return wp.vec4i(x0, y0, x1, y1)
 
 
+@wp.func
+def depth_key(depth: Any, depth_base: int, depth_shift: int):
+    """The depth part of a sort key (see the module docstring) as an int64."""
+    return wp.int64((wp.cast(wp.float32(depth), wp.int32) - depth_base) >> depth_shift)
+
+
 @wp.kernel
 def emit_intersections(
     splats: wp.array2d(dtype=Any),
@@ -52,8 +56,10 @@ def emit_intersections(
     tile_size: int,
     tiles_x: int,
     tiles_y: int,
-    tile_bits: int,
-    keys: wp.array(dtype=wp.int64),
+    depth_base: int,
+    depth_shift: int,
+    depth_bits: int,
+    keys: wp.array(dtype=Any),
     values: wp.array(dtype=wp.int32),
 ):
     """Write the keys and values of every intersection of one projected Gaussian (one thread per row).
@@ -63,47 +69,47 @@ def emit_intersections(
         radii: pixel radii ``[B*N]``; zero means culled.
         counts: int64 intersections per row ``[B*N]``; ``inclusive_offsets`` their inclusive prefix sum
             (the total is below 2^31, checked by the caller).
-        keys, values: outputs, at least ``sum(counts)`` long.
+        depth_base, depth_shift, depth_bits: the depth key (module docstring): the smallest float32 bit pattern
+            of a visible depth, the bits dropped below it, and the key bits it occupies.
+        keys: uint32 or int64 output, values: int32 output, each at least ``sum(counts)`` long.
     """
     i = wp.tid()
     count = counts[i]
     if count == wp.int64(0):
         return
-    camera = i // num_gaussians
+    first_tile = (i // num_gaussians) * tiles_x * tiles_y
     rect = tile_rect(splats[i, 0], splats[i, 1], radii[i], tile_size, tiles_x, tiles_y)
-    depth_bits = wp.int64(wp.cast(wp.float32(splats[i, DEPTH_COLUMN]), wp.int32))
+    low = depth_key(splats[i, DEPTH_COLUMN], depth_base, depth_shift)
     k = int(inclusive_offsets[i] - count)
     for ty in range(rect[1], rect[3]):
         for tx in range(rect[0], rect[2]):
-            high = (wp.int64(camera) << wp.int64(tile_bits)) | wp.int64(ty * tiles_x + tx)
-            keys[k] = (high << _DEPTH_SHIFT) | depth_bits
+            tile = wp.int64(first_tile + ty * tiles_x + tx)
+            keys[k] = keys.dtype((tile << wp.int64(depth_bits)) | low)
             values[k] = i
             k += 1
 
 
+@wp.func
+def key_tile(key: Any, depth_bits: int):
+    """The flat tile index of a sort key."""
+    return int(wp.int64(key) >> wp.int64(depth_bits))
+
+
 @wp.kernel
-def tile_ranges(
-    keys: wp.array(dtype=wp.int64),
-    count: int,
-    tile_bits: int,
-    tiles_per_image: int,
-    ranges: wp.array2d(dtype=wp.int32),
-):
-    """From sorted keys, the half-open range ``[start, end)`` of every tile (one thread per intersection).
+def tile_ranges(keys: wp.array(dtype=Any), count: int, depth_bits: int, ranges: wp.array2d(dtype=wp.int32)):
+    """From sorted keys, the half-open range ``[start, end)`` of every flat tile (one thread per intersection).
 
     Args:
-        keys: sorted keys, first ``count`` valid.
+        keys: sorted uint32 or int64 keys, first ``count`` valid; ``depth_bits``: key bits below the tile index.
         ranges: ``[B * tiles_per_image, 2]`` zero-initialised; tiles without intersections stay (0, 0).
     """
     i = wp.tid()
-    high = keys[i] >> _DEPTH_SHIFT
-    mask = (wp.int64(1) << wp.int64(tile_bits)) - wp.int64(1)
-    tile = int(high >> wp.int64(tile_bits)) * tiles_per_image + int(high & mask)
+    tile = key_tile(keys[i], depth_bits)
     if i == 0:
         ranges[tile, 0] = i
-    elif (keys[i - 1] >> _DEPTH_SHIFT) != high:
+    elif key_tile(keys[i - 1], depth_bits) != tile:
         ranges[tile, 0] = i
     if i == count - 1:
         ranges[tile, 1] = i + 1
-    elif (keys[i + 1] >> _DEPTH_SHIFT) != high:
+    elif key_tile(keys[i + 1], depth_bits) != tile:
         ranges[tile, 1] = i + 1

@@ -104,17 +104,21 @@ def test_threads_replay_their_own_launches(device):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("count, end_bit", [(1, 5), (37, 12), (1000, 40), (513, 63)])
-def test_radix_sort_pairs_sorts_like_a_stable_sort(device, count, end_bit):
+@pytest.mark.parametrize(
+    "key_dtype, count, end_bit",
+    [(torch.int64, 1, 5), (torch.int64, 37, 12), (torch.int64, 1000, 40), (torch.int64, 513, 63),
+     (torch.uint32, 1, 5), (torch.uint32, 1000, 25), (torch.uint32, 513, 32)],
+)  # fmt: skip
+def test_radix_sort_pairs_sorts_like_a_stable_sort(device, key_dtype, count, end_bit):
     g = torch.Generator().manual_seed(count)
     keys = torch.randint(0, 2 ** min(end_bit, 62), (2 * count,), generator=g, dtype=torch.int64)
     keys[: count // 3] = keys[count // 3 : 2 * (count // 3)]  # ties: the sort must keep their order
     values = torch.arange(2 * count, dtype=torch.int32)
     want_keys, order = torch.sort(keys[:count], stable=True)
-    keys, values = keys.to(device), values.to(device)
+    keys, values = keys.to(key_dtype).to(device), values.to(device)
     with warp_scope(keys.device):
         radix_sort_pairs(keys, values, count, end_bit)
-    assert torch.equal(keys[:count].cpu(), want_keys)
+    assert torch.equal(keys[:count].cpu().to(torch.int64), want_keys)
     assert torch.equal(values[:count].cpu(), order.to(torch.int32))
 
 
@@ -123,3 +127,5 @@ def test_radix_sort_pairs_rejects_short_or_mistyped_buffers():
         radix_sort_pairs(torch.zeros(3, dtype=torch.int64), torch.zeros(4, dtype=torch.int32), 2, 8)
     with pytest.raises(InputError, match="values"):
         radix_sort_pairs(torch.zeros(4, dtype=torch.int64), torch.zeros(4, dtype=torch.int64), 2, 8)
+    with pytest.raises(InputError, match="keys"):
+        radix_sort_pairs(torch.zeros(4, dtype=torch.int32), torch.zeros(4, dtype=torch.int32), 2, 8)

@@ -10,8 +10,9 @@ Function (or, when nothing needs a gradient, called without one) so that a call 
    pixel radii, tiles touched and input-validation flags.
 3. Prefix sum of the tile counts; ONE host sync reads the intersection count and the flags (adjacent in one
    int64 buffer), then the memory budget is checked before anything is allocated for sorting.
-4. One 64-bit key ``[camera | tile | depth bits]`` per intersection, Warp's radix sort
-   (:func:`~codecsplat_warp.device.radix_sort_pairs`) on the used bits only, per-tile ranges from the sorted keys.
+4. One key ``[camera | tile | depth]`` per intersection, 32 bits when the call's depth range allows (see
+   :func:`sort_key_layout`), else 64; Warp's radix sort (:func:`~codecsplat_warp.device.radix_sort_pairs`) on the
+   used bits only, per-tile ranges from the sorted keys.
 5. Front-to-back compositing per tile (rows staged in shared memory; expected depth normalised in the
    kernel), and a hand-written back-to-front backward. Projection gradients come from an adjoint launch of
    its straight-line twin kernel.
@@ -43,8 +44,10 @@ _LOW_PRECISION = (torch.float16, torch.bfloat16)
 DEFAULT_MAX_INTERSECTION_BYTES = 4 << 30
 """Default budget for the intersection sort buffers (keys and values, double-buffered): 4 GiB."""
 
-BYTES_PER_INTERSECTION = 2 * (8 + 4)
-"""Sort buffer bytes per intersection: an int64 key and an int32 value, each twice (radix sort scratch)."""
+MAX_DEPTH_SHIFT = 2
+"""Most low bits a 32-bit sort key may drop from the depth (see :func:`sort_key_layout`): depths within
+``2^2 = 4`` float32 units in the last place (4.8e-7 relative) of each other then tie and keep row order. That is
+the size of the rounding error of the float32 depth ``z = r . x + t`` itself (three products, three sums)."""
 
 LOW_PASS_PX2 = 0.3
 """Screen-space low-pass blur added to the 2D covariance diagonal, in px^2 (gsplat's eps2d)."""
@@ -99,7 +102,7 @@ class _Settings(NamedTuple):
     Attributes:
         width, height: image size in pixels; near, far: depth range; sh_degree: -1 for RGB colours;
         antialiased, render_depth: flags; tile_size: tile edge in pixels; min_transmittance: early-stop threshold;
-        tiles_x, tiles_y: tiles per image row and column; tile_bits: bits of a tile index in the sort key.
+        tiles_x, tiles_y: tiles per image row and column.
     """
 
     width: int
@@ -113,7 +116,6 @@ class _Settings(NamedTuple):
     min_transmittance: float
     tiles_x: int
     tiles_y: int
-    tile_bits: int
 
 
 class _Cameras(NamedTuple):
@@ -375,8 +377,10 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
         count, flag_values = _read_count_and_flags(ints, B * N)
         if validation_enabled():
             _raise_on_flags(flag_values)
-        _check_budget(count, max_intersection_bytes)
-        sorted_ids = _bin_intersections(splats, radii, tile_counts, offsets, count, B, settings, ranges, wdev)
+        key = sort_key_layout(len(ranges), flag_values[raster_project.DEPTH_BITS_MIN],
+                              flag_values[raster_project.DEPTH_BITS_MAX])  # fmt: skip
+        _check_budget(count, key, max_intersection_bytes)
+        sorted_ids = _bin_intersections(splats, radii, tile_counts, offsets, count, B, settings, key, ranges, wdev)
         common = _composite_args(ranges, sorted_ids, splats, colors_or_black, settings, composite.blocks_per_tile)
         threshold = warp_dtype(dtype)(settings.min_transmittance)
         launch(composite.kernels[0], composite.blocks, [*common, threshold, color, depth, alpha, state, last], wdev,
@@ -489,7 +493,8 @@ def rasterize(
         sh_degree: SH degree 0..3 to evaluate (SH colours only); None uses ``sqrt(K) - 1``.
         render_depth: also render expected depth ``sum w z / max(alpha, 1e-10)``; False skips that work.
         tile_size: tile edge in pixels (1..32; 16 is the tuned default).
-        max_intersection_bytes: budget for the intersection sort buffers (24 bytes per intersection).
+        max_intersection_bytes: budget for the intersection sort buffers (16 bytes per intersection with 32-bit
+            sort keys, 24 with 64-bit ones; see :func:`sort_key_layout`).
         min_transmittance: early stop, in [0, 1): a pixel stops compositing before the first Gaussian that
             would take its transmittance ``T`` to this value or below (gsplat's 1e-4 by default). Larger
             values skip more of the hidden Gaussians (faster, a larger error against an exact render);
@@ -615,8 +620,7 @@ def _make_settings(colors, width, height, near, far, mode, sh_degree, render_dep
     width, height, tile_size = int(width), int(height), int(tile_size)
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     return _Settings(width, height, float(near), float(far), degree, mode == "antialiased", bool(render_depth),
-                     tile_size, _transmittance_threshold(min_transmittance), tiles_x, tiles_y,
-                     max(1, (tiles_x * tiles_y - 1).bit_length()))  # fmt: skip
+                     tile_size, _transmittance_threshold(min_transmittance), tiles_x, tiles_y)  # fmt: skip
 
 
 def _transmittance_threshold(value) -> float:
@@ -646,15 +650,55 @@ def _sh_degree(colors: torch.Tensor, sh_degree: int | None) -> int:
 
 
 def _check_key_bits(num_cameras: int, settings: _Settings) -> None:
-    if raster_tiles.DEPTH_BITS + settings.tile_bits + _camera_bits(num_cameras) > 63:
+    tiles = num_cameras * settings.tiles_x * settings.tiles_y
+    if (tiles - 1).bit_length() > 63 - FLOAT32_DEPTH_BITS:
         raise InputError(
             f"{num_cameras} cameras x {settings.tiles_x * settings.tiles_y} tiles do not fit the "
-            f"{63 - raster_tiles.DEPTH_BITS}-bit camera|tile part of the sort key; render fewer cameras per call or use larger tiles"
+            f"{63 - FLOAT32_DEPTH_BITS}-bit tile part of the sort key; render fewer cameras per call or use larger tiles"
         )
 
 
-def _camera_bits(num_cameras: int) -> int:
-    return (num_cameras - 1).bit_length()
+FLOAT32_DEPTH_BITS = 31
+"""Bits of a positive float32 depth (its sign bit is 0): the most a sort key's depth part can need (a 64-bit key
+keeps its sign bit 0, so 32 bits are left for the flat tile index)."""
+
+
+class SortKey(NamedTuple):
+    """How one call packs its intersection sort keys ``[flat tile | depth key]`` (see
+    :mod:`codecsplat_warp.kernels.raster_tiles`).
+
+    Attributes:
+        dtype: ``torch.uint32`` or ``torch.int64``; depth_base: the smallest float32 bit pattern of a visible depth;
+        depth_shift: low depth bits dropped (ties within ``2^depth_shift`` float32 ulps); depth_bits: key bits of
+        the depth part; bits: key bits in use (the radix sort's end bit).
+    """
+
+    dtype: torch.dtype
+    depth_base: int
+    depth_shift: int
+    depth_bits: int
+    bits: int
+
+    @property
+    def bytes_per_intersection(self) -> int:
+        """Sort buffer bytes per intersection: the key and an int32 value, each twice (radix sort scratch)."""
+        return 2 * (self.dtype.itemsize + 4)
+
+
+def sort_key_layout(num_tiles: int, depth_bits_min: int, depth_bits_max: int) -> SortKey:
+    """The sort key of a call with ``num_tiles`` flat tiles (cameras x tiles per image) whose visible depths have
+    float32 bit patterns in ``[depth_bits_min, depth_bits_max]``.
+
+    The depth part keeps the bits that span needs; a 32-bit key when it fits in 32 bits after dropping at most
+    :data:`MAX_DEPTH_SHIFT` low depth bits (half the sort passes of a 64-bit key, two thirds of the bytes), else
+    a lossless 64-bit key. An empty range (no visible depth) gives a 32-bit key with no depth bits.
+    """
+    tile_bits = (num_tiles - 1).bit_length()
+    span_bits = max(depth_bits_max - depth_bits_min, 0).bit_length()
+    shift = max(0, tile_bits + span_bits - 32)
+    if shift <= MAX_DEPTH_SHIFT:
+        return SortKey(torch.uint32, depth_bits_min, shift, span_bits - shift, tile_bits + span_bits - shift)
+    return SortKey(torch.int64, depth_bits_min, 0, span_bits, tile_bits + span_bits)
 
 
 def _read_count_and_flags(ints: torch.Tensor, rows: int) -> tuple[int, list[int]]:
@@ -680,8 +724,8 @@ def _raise_on_flags(flag_values: list[int]) -> None:
         raise InputError(f"quats has {flag_values[raster_project.ZERO_QUATS]} zero quaternion(s) (no rotation)")
 
 
-def _check_budget(count: int, max_bytes: int) -> None:
-    needed = count * BYTES_PER_INTERSECTION
+def _check_budget(count: int, key: SortKey, max_bytes: int) -> None:
+    needed = count * key.bytes_per_intersection
     if needed > max_bytes or count >= 2**31:
         raise RasterMemoryError(
             f"{count:,} tile intersections need {needed:,} bytes ({needed / 2**30:.2f} GiB) of sort buffers, "
@@ -690,15 +734,13 @@ def _check_budget(count: int, max_bytes: int) -> None:
 
 
 def _bin_intersections(splats, radii, tile_counts, offsets, count: int, num_cameras: int, settings: _Settings,
-                       ranges: torch.Tensor, wdev) -> torch.Tensor:  # fmt: skip
-    """Sorted row ids ``[count]`` (int32) of the rows ``[B*N, 10]``; fills the per-tile ranges ``[B*tiles, 2]``
-    (int32, zero-initialised by the caller)."""
-    tiles_per_image = settings.tiles_x * settings.tiles_y
-    keys = tile_counts.new_empty(2 * count)
+                       key: SortKey, ranges: torch.Tensor, wdev) -> torch.Tensor:  # fmt: skip
+    """Sorted row ids ``[count]`` (int32) of the rows ``[B*N, 10]``, sorted by keys laid out as ``key`` says; fills
+    the per-tile ranges ``[B*tiles, 2]`` (int32, zero-initialised by the caller)."""
+    keys = tile_counts.new_empty(2 * count, dtype=key.dtype)
     values = ranges.new_empty(2 * count)
     if count == 0:
         return values
-    tile_bits = settings.tile_bits
     launch(
         raster_tiles.emit_intersections,
         splats.shape[0],
@@ -711,15 +753,17 @@ def _bin_intersections(splats, radii, tile_counts, offsets, count: int, num_came
             settings.tile_size,
             settings.tiles_x,
             settings.tiles_y,
-            tile_bits,
+            key.depth_base,
+            key.depth_shift,
+            key.depth_bits,
             keys,
             values,
         ],
         wdev,
-        layout=splats.dtype,
+        layout=(splats.dtype, key.dtype),
     )
-    radix_sort_pairs(keys, values, count, raster_tiles.DEPTH_BITS + tile_bits + _camera_bits(num_cameras))
-    launch(raster_tiles.tile_ranges, count, [keys, count, tile_bits, tiles_per_image, ranges], wdev, layout=())
+    radix_sort_pairs(keys, values, count, key.bits)
+    launch(raster_tiles.tile_ranges, count, [keys, count, key.depth_bits, ranges], wdev, layout=key.dtype)
     return values[:count]
 
 
