@@ -111,8 +111,12 @@ const int leader = __ffs(active) - 1;
 const int low = __reduce_min_sync(active, value);
 const int high = __reduce_max_sync(active, value);
 if (static_cast<int>(lane) == leader) {
-    atomicMin(reinterpret_cast<long long*>(counters.data) + min_slot, static_cast<long long>(low));
-    atomicMax(reinterpret_cast<long long*>(counters.data) + max_slot, static_cast<long long>(high));
+    long long* range = reinterpret_cast<long long*>(counters.data);
+    // the bounds only tighten, so a stale read costs at most a needless atomic: most warps issue none
+    if (low < *reinterpret_cast<volatile long long*>(range + min_slot))
+        atomicMin(range + min_slot, static_cast<long long>(low));
+    if (high > *reinterpret_cast<volatile long long*>(range + max_slot))
+        atomicMax(range + max_slot, static_cast<long long>(high));
 }
 #else
 wp::int64* low = counters.data + min_slot;
@@ -131,6 +135,6 @@ while (value > seen && !__atomic_compare_exchange_n(high, &seen, static_cast<wp:
 def warp_fold_range(counters: wp.array(dtype=wp.int64), min_slot: int, max_slot: int, value: int):
     """Fold ``value`` into a running range: ``counters[min_slot] = min(counters[min_slot], value)`` and
     ``counters[max_slot] = max(counters[max_slot], value)``. On CUDA the lanes of a warp that call it together
-    reduce first and one lane issues the two atomics; on the CPU each call is atomic. Lanes need not call it
-    together."""
+    reduce first, and one lane issues an atomic only where the warp's bound beats the stored one; on the CPU each
+    call is atomic. Lanes need not call it together."""
     ...

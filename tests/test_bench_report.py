@@ -76,3 +76,14 @@ def test_codec_hook_measures_psnr_against_encode_decode_time(tmp_path):
                             "not_exposed": {}, "codec": f"measured on {scene}"}, tmp_path)  # fmt: skip
     assert any(r["pareto"] for r in result["rows"])
     assert "## codec" in (tmp_path / "report.md").read_text() and (tmp_path / "pareto.png").is_file()
+
+
+def test_interleaved_rounds_alternate_their_order():
+    """One warm-up call each, then rounds in order and in reverse order by turns; one sample per call per round."""
+    from codecsplat_warp.bench.common import interleaved_medians
+
+    ran = []
+    calls = {name: (lambda name=name: ran.append(name)) for name in "abc"}
+    medians = interleaved_medians(calls, torch.device("cpu"), reps=3)
+    assert "".join(ran) == "abc" + "abc" + "cba" + "abc"
+    assert set(medians) == set("abc")

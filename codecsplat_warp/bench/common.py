@@ -54,13 +54,16 @@ def time_call(fn: Callable[[], object], device: torch.device, reps: int, warmup:
 def interleaved_medians(calls: dict[Hashable, Callable[[], object]], device: torch.device,
                         reps: int) -> dict[Hashable, float]:
     """Median ms of each call over ``reps`` rounds that run every call once in turn (after one untimed
-    warm-up each), so that a machine's load drifting during the benchmark affects all of them alike."""
+    warm-up each), so that a machine's load drifting during the benchmark affects all of them alike. Every
+    other round runs the calls in reverse order, so that no call always follows the same one (a call
+    after a heavier one may find the GPU clocked higher, or the host's garbage still to collect)."""
     for call in calls.values():
         call()
     samples: dict[Hashable, list[float]] = {name: [] for name in calls}
-    for _ in range(reps):
-        for name, call in calls.items():
-            samples[name].append(time_call(call, device, 1, warmup=0).median_ms)
+    order = list(calls)
+    for round_index in range(reps):
+        for name in order if round_index % 2 == 0 else reversed(order):
+            samples[name].append(time_call(calls[name], device, 1, warmup=0).median_ms)
     return {name: statistics.median(values) for name, values in samples.items()}
 
 
