@@ -10,7 +10,7 @@ import torch
 from conftest import DEVICES
 
 from codecsplat_warp.errors import InputError, RasterMemoryError
-from codecsplat_warp.kernels.raster_project import NO_DEPTH_BITS
+from codecsplat_warp.kernels.raster_project import NO_DEPTH_BITS, VISIBLE_COUNT
 from codecsplat_warp.ops.raster import project_gaussians, rasterize, sort_key_layout
 from codecsplat_warp.reference.raster import rasterize_dense
 from codecsplat_warp.synthetic import random_gaussians as make_scene
@@ -378,7 +378,7 @@ def test_projection_lists_each_visible_row_once(device):
     outputs, saved = raster_ops._render(means, quats, scales, opacities, colors, background, viewmats, Ks, settings,
                                         raster_ops.DEFAULT_MAX_INTERSECTION_BYTES)  # fmt: skip
     visible = outputs[3].reshape(-1, 2).any(dim=-1).nonzero().flatten().cpu()
-    listed = saved.visible.rows[: int(saved.visible.count)].cpu().to(torch.int64)
+    listed = saved.visible.rows[: int(saved.visible.flags[VISIBLE_COUNT])].cpu().to(torch.int64)
     assert 100 < len(visible) < 600 and (visible < 300).any() and (visible >= 300).any()
     assert torch.equal(listed.sort().values, visible)
 
@@ -459,3 +459,29 @@ def test_depths_within_the_dropped_bits_keep_row_order():
     rgb = rasterize(means, quats, scales, opacities, colors, viewmats, Ks, 32, 32, tile_size=1)[0]
     centre = rgb[0, 16, 16]
     assert centre[0] > 5 * centre[1]  # row 0 (red, behind by 2 ulps) is in front
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_projection_zeroes_every_tile_range(device, monkeypatch):
+    """The projection zeroes the tile ranges in a loop over its B*N threads: with 6 Gaussians and 480 one-pixel
+    tiles, ranges poisoned before it runs come out of the binning as from a clean buffer, and the images match."""
+    import codecsplat_warp.ops.raster as raster_ops
+
+    inputs = [t.to(device) for t in make_scene(6, 24, 20, seed=2)]
+    means, quats, scales, opacities, colors, viewmats, Ks, background, settings = raster_ops._prepare(
+        *inputs, 24, 20, 0.01, 1e10, None, "classic", None, True, 1, 1e-4
+    )
+    checked = (means, quats, scales, opacities, colors, background, viewmats, Ks, settings,
+               raster_ops.DEFAULT_MAX_INTERSECTION_BYTES)  # fmt: skip
+    clean_outputs, clean = raster_ops._render(*checked)
+    project = raster_ops._project
+
+    def poisoned(*args, **kwargs):
+        args[10].fill_(7)
+        return project(*args, **kwargs)
+
+    monkeypatch.setattr(raster_ops, "_project", poisoned)
+    outputs, saved = raster_ops._render(*checked)
+    assert 0 < outputs[4] < 480 and (clean.ranges == 0).all(dim=1).sum() > 100
+    assert torch.equal(saved.ranges, clean.ranges)
+    assert torch.equal(outputs[0], clean_outputs[0])

@@ -144,21 +144,17 @@ class _Visible(NamedTuple):
     projection fills it).
 
     Attributes:
-        count: ``[1]`` int64 length of the list; rows: ``[B*N]`` int32 flat row indices, the first ``count`` valid.
+        flags: the ``[NUM_FLAGS]`` int64 flag buffer, whose slot ``VISIBLE_COUNT`` holds the length of the list;
+        rows: ``[B*N]`` int32 flat row indices, the first ``flags[VISIBLE_COUNT]`` valid.
     """
 
-    count: torch.Tensor
+    flags: torch.Tensor
     rows: torch.Tensor
 
 
-def _visible_list(means: torch.Tensor, rows: int) -> _Visible:
-    return _Visible(means.new_empty(1, dtype=torch.int64), means.new_empty(rows, dtype=torch.int32))
-
-
-def _prepare_cameras(viewmats, Ks, background, cameras: _Cameras, flags: torch.Tensor, visible: _Visible,
-                     wdev) -> None:  # fmt: skip
-    """Launch :func:`~codecsplat_warp.kernels.raster_project.prepare_cameras`; it also initialises ``flags`` and
-    the length of the ``visible`` list.
+def _prepare_cameras(viewmats, Ks, background, cameras: _Cameras, flags: torch.Tensor, wdev) -> None:
+    """Launch :func:`~codecsplat_warp.kernels.raster_project.prepare_cameras`; it also initialises ``flags`` (the
+    length of the list of visible rows included).
 
     Args:
         viewmats: ``[B,4,4]``, Ks: ``[B,3,3]`` as given (float32 or float64); background: ``[B,3]`` or ``[0,3]``.
@@ -169,8 +165,8 @@ def _prepare_cameras(viewmats, Ks, background, cameras: _Cameras, flags: torch.T
     launch(
         raster_project.prepare_cameras,
         1,
-        [viewmats, Ks, background, int(dtype != torch.float64), cameras.viewmats, cameras.Ks, cameras.origin, flags,
-         visible.count],  # fmt: skip
+        [viewmats, Ks, background, int(dtype != torch.float64), cameras.viewmats, cameras.Ks, cameras.origin,
+         flags],  # fmt: skip
         wdev,
         layout=(viewmats.dtype, Ks.dtype, dtype),
     )
@@ -190,10 +186,11 @@ _ZERO = {dtype: warp_dtype(dtype)(0.0) for dtype in FLOAT_DTYPES}
 
 
 def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, settings: _Settings, splats: torch.Tensor,
-             tile_counts: torch.Tensor, flags: torch.Tensor, visible: _Visible, wdev,
+             tile_counts: torch.Tensor, visible: _Visible, ranges: torch.Tensor, wdev,
              zero_culled: bool = False) -> torch.Tensor:  # fmt: skip
     """Fill the projected rows ``splats [B*N, 10]`` (rows of culled Gaussians only with ``zero_culled``, else left
-    as they were), ``tile_counts [B*N]``, ``flags`` and the ``visible`` list; return radii ``[B*N, 2]`` int32."""
+    as they were), ``tile_counts [B*N]``, the flags and the ``visible`` list, and zero the tile ``ranges``
+    ``[T, 2]`` int32 (``[0, 2]`` for none); return radii ``[B*N, 2]`` int32."""
     dtype = means.dtype
     scalar = warp_dtype(dtype)
     radii = tile_counts.new_empty(splats.shape[0], 2, dtype=torch.int32)
@@ -216,9 +213,9 @@ def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, setting
             splats,
             vectors(radii),
             tile_counts,
-            flags,
-            visible.count,
+            visible.flags,
             visible.rows,
+            vectors(ranges),
         ],
         wdev,
         layout=dtype,
@@ -244,7 +241,7 @@ def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, camera
         B * N,
         [
             *_projection_inputs(means, quats, scales, opacities, coeffs, cameras),
-            visible.count,
+            visible.flags,
             visible.rows,
             settings.sh_degree,
             settings.width,
@@ -270,11 +267,11 @@ class _ProjectGaussians(torch.autograd.Function):
             (B * N, raster_project.NUM_FLAGS)
         )
         splats, cameras = _rows_and_cameras(means, B)
-        visible = _visible_list(means, B * N)
+        visible = _Visible(flags, means.new_empty(B * N, dtype=torch.int32))
         with warp_scope(means.device) as wdev:
-            _prepare_cameras(viewmats, Ks, _absent(means, 3), cameras, flags, visible, wdev)
-            radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, flags,
-                             visible, wdev, zero_culled=True)  # fmt: skip
+            _prepare_cameras(viewmats, Ks, _absent(means, 3), cameras, flags, wdev)
+            radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, visible,
+                             tile_counts.new_empty(0, 2, dtype=torch.int32), wdev, zero_culled=True)  # fmt: skip
         ctx.settings = settings
         ctx.cameras = cameras
         ctx.visible = visible
@@ -364,14 +361,14 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
     ints = means.new_empty(2 * B * N + raster_project.NUM_FLAGS, dtype=torch.int64)
     tile_counts, offsets, flags = ints.split_with_sizes((B * N, B * N, raster_project.NUM_FLAGS))
     splats, cameras = _rows_and_cameras(means, B)
-    visible = _visible_list(means, B * N)
+    visible = _Visible(flags, means.new_empty(B * N, dtype=torch.int32))
+    # everything whose size does not depend on the count is allocated before the sync (the projection zeroes ranges)
+    ranges = tile_counts.new_empty(B * settings.tiles_x * settings.tiles_y, 2, dtype=torch.int32)
     with warp_scope(device) as wdev:
-        _prepare_cameras(viewmats, Ks, colors_or_black, cameras, flags, visible, wdev)
-        radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, flags,
-                         visible, wdev)  # fmt: skip
+        _prepare_cameras(viewmats, Ks, colors_or_black, cameras, flags, wdev)
+        radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, visible,
+                         ranges, wdev)  # fmt: skip
         torch.cumsum(tile_counts, 0, out=offsets)
-        # everything whose size does not depend on the count is allocated (and zeroed) before the sync
-        ranges = tile_counts.new_zeros(B * settings.tiles_x * settings.tiles_y, 2, dtype=torch.int32)
         composite = _composite_launch(device, settings.tile_size, len(ranges))
         color, depth, alpha, state, last = _composite_outputs(B, settings, splats)
         count, flag_values = _read_count_and_flags(ints, B * N)
@@ -736,7 +733,7 @@ def _check_budget(count: int, key: SortKey, max_bytes: int) -> None:
 def _bin_intersections(splats, radii, tile_counts, offsets, count: int, num_cameras: int, settings: _Settings,
                        key: SortKey, ranges: torch.Tensor, wdev) -> torch.Tensor:  # fmt: skip
     """Sorted row ids ``[count]`` (int32) of the rows ``[B*N, 10]``, sorted by keys laid out as ``key`` says; fills
-    the per-tile ranges ``[B*tiles, 2]`` (int32, zero-initialised by the caller)."""
+    the per-tile ranges ``[B*tiles, 2]`` (int32, zeroed by the projection)."""
     keys = tile_counts.new_empty(2 * count, dtype=key.dtype)
     values = ranges.new_empty(2 * count)
     if count == 0:
