@@ -103,6 +103,9 @@ def warp_append(counters: wp.array(dtype=wp.int64), slot: int) -> int:
     ...
 
 
+CACHE_LINE_INT64 = 16
+"""int64 counters per 128-byte cache line: the stride between the lines of :func:`warp_fold_range`."""
+
 _WARP_FOLD_RANGE = """
 #if defined(__CUDA_ARCH__)
 const unsigned active = __activemask();
@@ -111,19 +114,17 @@ const int leader = __ffs(active) - 1;
 const int low = __reduce_min_sync(active, value);
 const int high = __reduce_max_sync(active, value);
 if (static_cast<int>(lane) == leader) {
-    long long* range = reinterpret_cast<long long*>(counters.data);
-    // the bounds only tighten, so a stale read costs at most a needless atomic: most warps issue none
-    if (low < *reinterpret_cast<volatile long long*>(range + min_slot))
-        atomicMin(range + min_slot, static_cast<long long>(low));
-    if (high > *reinterpret_cast<volatile long long*>(range + max_slot))
-        atomicMax(range + max_slot, static_cast<long long>(high));
+    const unsigned line = (blockIdx.x * (blockDim.x >> 5u) + (threadIdx.x >> 5u)) % static_cast<unsigned>(lines);
+    long long* range = reinterpret_cast<long long*>(counters.data) + first + 16u * line;
+    atomicMin(range, static_cast<long long>(low));
+    atomicMax(range + 1, static_cast<long long>(high));
 }
 #else
-wp::int64* low = counters.data + min_slot;
+wp::int64* low = counters.data + first;
 wp::int64 seen = __atomic_load_n(low, __ATOMIC_RELAXED);
 while (value < seen && !__atomic_compare_exchange_n(low, &seen, static_cast<wp::int64>(value), false,
                                                     __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {}
-wp::int64* high = counters.data + max_slot;
+wp::int64* high = counters.data + first + 1;
 seen = __atomic_load_n(high, __ATOMIC_RELAXED);
 while (value > seen && !__atomic_compare_exchange_n(high, &seen, static_cast<wp::int64>(value), false,
                                                     __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {}
@@ -132,9 +133,11 @@ while (value > seen && !__atomic_compare_exchange_n(high, &seen, static_cast<wp:
 
 
 @wp.func_native(_WARP_FOLD_RANGE)
-def warp_fold_range(counters: wp.array(dtype=wp.int64), min_slot: int, max_slot: int, value: int):
-    """Fold ``value`` into a running range: ``counters[min_slot] = min(counters[min_slot], value)`` and
-    ``counters[max_slot] = max(counters[max_slot], value)``. On CUDA the lanes of a warp that call it together
-    reduce first, and one lane issues an atomic only where the warp's bound beats the stored one; on the CPU each
-    call is atomic. Lanes need not call it together."""
+def warp_fold_range(counters: wp.array(dtype=wp.int64), first: int, lines: int, value: int):
+    """Fold ``value`` into a running range kept in ``lines`` cache lines of ``counters``: line ``k`` holds a
+    minimum at ``first + 16 k`` and a maximum at ``first + 16 k + 1`` (:data:`CACHE_LINE_INT64` apart), and the
+    range is the min and max over the lines. On CUDA the lanes of a warp that call it together reduce first and
+    one lane adds two fire-and-forget atomics to its warp's line (warps spread over the lines, so that they do not
+    all queue on one cache line); on the CPU every call folds into line 0 atomically. Lanes need not call it
+    together."""
     ...

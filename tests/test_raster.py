@@ -383,6 +383,28 @@ def test_projection_lists_each_visible_row_once(device):
     assert torch.equal(listed.sort().values, visible)
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_projection_folds_the_visible_depth_range(device):
+    """The smallest and largest float32 bit pattern of a visible row's depth, as the projection folds them over the
+    lines of the flag buffer (on CUDA from 94 warps spread over the lines; culled rows, here the ones behind the
+    camera, left out)."""
+    import codecsplat_warp.ops.raster as raster_ops
+    from codecsplat_warp.kernels.raster_project import depth_bits_range
+
+    means, quats, scales, opacities, colors, viewmats, Ks = make_scene(3000, 40, 30, dtype=torch.float32, seed=6)
+    means[::4, 2] *= -1.0
+    inputs = [t.to(device) for t in (means, quats, scales, opacities, colors, viewmats, Ks)]
+    checked = raster_ops._prepare(*inputs, 40, 30, 0.01, 1e10, None, "classic", None, True, 16, 1e-4)
+    means, quats, scales, opacities, colors, viewmats, Ks, background, settings = checked
+    outputs, saved = raster_ops._render(means, quats, scales, opacities, colors, background, viewmats, Ks, settings,
+                                        raster_ops.DEFAULT_MAX_INTERSECTION_BYTES)  # fmt: skip
+    visible = outputs[3].reshape(-1, 2).any(dim=-1)
+    depths = saved.splats[visible, 9].float().cpu()
+    assert 1000 < len(depths) < 3000
+    want = (float32_bits(depths.min().item()), float32_bits(depths.max().item()))
+    assert depth_bits_range(saved.visible.flags.tolist()) == want
+
+
 def test_too_many_tiles_for_the_sort_key_is_a_typed_error():
     means, quats, scales, opacities, colors, viewmats, Ks = make_scene(2, 16, 16)
     two_cameras = viewmats.expand(2, 4, 4), Ks.expand(2, 3, 3)

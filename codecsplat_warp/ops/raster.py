@@ -374,8 +374,7 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
         count, flag_values = _read_count_and_flags(ints, B * N)
         if validation_enabled():
             _raise_on_flags(flag_values)
-        key = sort_key_layout(len(ranges), flag_values[raster_project.DEPTH_BITS_MIN],
-                              flag_values[raster_project.DEPTH_BITS_MAX])  # fmt: skip
+        key = sort_key_layout(len(ranges), *raster_project.depth_bits_range(flag_values))
         _check_budget(count, key, max_intersection_bytes)
         sorted_ids = _bin_intersections(splats, radii, tile_counts, offsets, count, B, settings, key, ranges, wdev)
         common = _composite_args(ranges, sorted_ids, splats, colors_or_black, settings, composite.blocks_per_tile)
