@@ -135,37 +135,75 @@ def warp_scope(device: torch.device) -> "_WarpScope":
 
 
 class _WarpScope:
-    """The context manager :func:`warp_scope` returns (a class: cheaper to enter than a generator)."""
+    """The context manager :func:`warp_scope` returns (a class: cheaper to enter than a generator).
 
-    __slots__ = ("device", "stream_scope")
+    On CUDA it sets the Warp device's current stream to torch's current stream of the device (restored on exit;
+    nothing to do when it already is, as in a nested scope) and, when torch's current device is another one, makes
+    the device's CUDA context current (Warp's native radix sort runs in the current context). Cheaper than
+    ``wp.ScopedStream(wp.stream_from_torch(...))``, which took 19.5 us per enter and exit on a lent H100's host:
+    the raw stream handle is read without making a ``torch.cuda.Stream``, and no device scope is entered when
+    none is needed."""
+
+    __slots__ = ("device", "warp_device", "saved_stream", "device_scope")
 
     def __init__(self, device: torch.device):
         self.device = device
-        self.stream_scope = None
+        self.saved_stream = None
+        self.device_scope = None
 
     def __enter__(self) -> "wp.context.Device":
-        wdev = warp_device(self.device)
+        wdev = self.warp_device = warp_device(self.device)
         if self.device.type == "cuda":
-            self.stream_scope = wp.ScopedStream(_warp_stream(torch.cuda.current_stream(self.device)), sync_enter=False)
-            self.stream_scope.__enter__()
+            index = wdev.ordinal
+            if torch.cuda.current_device() != index:
+                self.device_scope = wp.ScopedDevice(wdev)
+                self.device_scope.__enter__()
+            stream = _warp_stream(wdev, torch._C._cuda_getCurrentRawStream(index))
+            if wdev.stream is not stream:
+                self.saved_stream = wdev.stream
+                wdev.set_stream(stream, sync=False)
         return wdev
 
     def __exit__(self, exc_type, exc_value, traceback) -> None:
-        if self.stream_scope is not None:
-            self.stream_scope.__exit__(exc_type, exc_value, traceback)
-            self.stream_scope = None
+        if self.saved_stream is not None:
+            self.warp_device.set_stream(self.saved_stream, sync=False)
+            self.saved_stream = None
+        if self.device_scope is not None:
+            self.device_scope.__exit__(exc_type, exc_value, traceback)
+            self.device_scope = None
 
 
 _warp_streams: dict[tuple[int, int], "wp.Stream"] = {}
 
 
-def _warp_stream(torch_stream: torch.cuda.Stream) -> "wp.Stream":
-    """The Warp stream wrapping a torch CUDA stream, created once per (device, stream handle)."""
-    key = (torch_stream.device.index, torch_stream.cuda_stream)
+def _warp_stream(wdev, handle: int) -> "wp.Stream":
+    """The Warp stream wrapping the CUDA stream ``handle`` (a torch stream's ``cuda_stream``) of Warp device
+    ``wdev``, created once per (device, handle); it does not own the stream."""
+    key = (wdev.ordinal, handle)
     stream = _warp_streams.get(key)
     if stream is None:
-        stream = _warp_streams[key] = wp.stream_from_torch(torch_stream)
+        stream = _warp_streams[key] = wp.Stream(wdev, cuda_stream=handle)
     return stream
+
+
+_pinned = threading.local()
+"""``buffer``: this thread's pinned int64 staging buffer for :func:`host_values`."""
+
+
+def host_values(tensor: torch.Tensor, wdev) -> list:
+    """``tensor.tolist()`` for a small contiguous int64 tensor. On CUDA (inside :func:`warp_scope`, whose Warp device
+    ``wdev`` is) the values go through this thread's pinned buffer: one asynchronous copy on torch's current stream
+    and a sync of that stream, instead of torch's copy to pageable memory (23 us per read on a lent H100's host)."""
+    if not tensor.is_cuda:
+        return tensor.tolist()
+    count = tensor.numel()
+    buffer = getattr(_pinned, "buffer", None)
+    if buffer is None or buffer.numel() < count:
+        buffer = _pinned.buffer = torch.empty(max(count, 1024), dtype=torch.int64, pin_memory=True)
+    staged = buffer[:count]
+    staged.copy_(tensor, non_blocking=True)
+    wp.synchronize_stream(wdev.stream)
+    return staged.tolist()
 
 
 def to_warp(tensor: torch.Tensor, dtype=None):

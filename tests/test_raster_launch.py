@@ -4,6 +4,7 @@ scalars; and device.radix_sort_pairs, the sort the rasterizer calls on tensors d
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import threading
 import weakref
@@ -14,7 +15,7 @@ import torch
 import warp as wp
 from conftest import DEVICES
 
-from codecsplat_warp.device import launch, radix_sort_pairs, vectors, warp_scope
+from codecsplat_warp.device import host_values, launch, radix_sort_pairs, vectors, warp_scope
 from codecsplat_warp.errors import InputError
 
 
@@ -129,3 +130,25 @@ def test_radix_sort_pairs_rejects_short_or_mistyped_buffers():
         radix_sort_pairs(torch.zeros(4, dtype=torch.int64), torch.zeros(4, dtype=torch.int64), 2, 8)
     with pytest.raises(InputError, match="keys"):
         radix_sort_pairs(torch.zeros(4, dtype=torch.int32), torch.zeros(4, dtype=torch.int32), 2, 8)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_warp_scope_runs_on_torchs_current_stream_and_restores_warps(device):
+    """Inside the scope Warp's device stream is torch's current one (here a side stream with a slow kernel queued
+    first, which a launch and host_values must wait for); after it, Warp's own stream again."""
+    device = torch.device(device)
+    side = torch.cuda.Stream(device) if device.type == "cuda" else None
+    before = wp.get_device(str(device)).stream if device.type == "cuda" else None
+    with torch.cuda.stream(side) if side is not None else contextlib.nullcontext():
+        values = torch.zeros(300, dtype=torch.int64, device=device)
+        if side is not None:
+            torch.cuda._sleep(50_000_000)  # ~25 ms of GPU time before the fill on the side stream
+        values.fill_(7)
+        with warp_scope(device) as wdev:
+            if side is not None:
+                assert wdev.stream.cuda_stream == side.cuda_stream
+            out = _run(torch.ones(300, 3, device=device), values.double().float(), 1.0, 0)
+            assert host_values(values, wdev) == [7] * 300
+        assert torch.equal(out.cpu(), torch.full((300,), 21.0))
+    if before is not None:
+        assert wp.get_device(str(device)).stream is before

@@ -33,8 +33,8 @@ import torch
 import warp as wp
 
 from ..device import (
-    FLOAT_DTYPES, check_finite, check_tensor, common_device, launch, matrices, radix_sort_pairs, validation_enabled,
-    vectors, warp_dtype, warp_scope,
+    FLOAT_DTYPES, check_finite, check_tensor, common_device, host_values, launch, matrices, radix_sort_pairs,
+    validation_enabled, vectors, warp_dtype, warp_scope,
 )  # fmt: skip
 from ..errors import InputError, RasterMemoryError
 from ..kernels import raster_composite, raster_project, raster_tiles
@@ -371,7 +371,7 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
         torch.cumsum(tile_counts, 0, out=offsets)
         composite = _composite_launch(device, settings.tile_size, len(ranges))
         color, depth, alpha, state, last = _composite_outputs(B, settings, splats)
-        count, flag_values = _read_count_and_flags(ints, B * N)
+        count, flag_values = _read_count_and_flags(ints, B * N, wdev)
         if validation_enabled():
             _raise_on_flags(flag_values)
         key = sort_key_layout(len(ranges), *raster_project.depth_bits_range(flag_values))
@@ -697,12 +697,13 @@ def sort_key_layout(num_tiles: int, depth_bits_min: int, depth_bits_max: int) ->
     return SortKey(torch.int64, depth_bits_min, 0, span_bits, tile_bits + span_bits)
 
 
-def _read_count_and_flags(ints: torch.Tensor, rows: int) -> tuple[int, list[int]]:
-    """The single host sync of a forward: the intersection count (the last inclusive offset) and the validation
-    flags, read together from the int64 buffer ``[tile counts (rows) | offsets (rows) | flags]``."""
+def _read_count_and_flags(ints: torch.Tensor, rows: int, wdev) -> tuple[int, list[int]]:
+    """The single host sync of a forward: the intersection count (the last inclusive offset) and the flags, read
+    together from the int64 buffer ``[tile counts (rows) | offsets (rows) | flags]`` (inside :func:`warp_scope`,
+    whose Warp device ``wdev`` is)."""
     if rows == 0:
-        return 0, ints.tolist()
-    values = ints[2 * rows - 1 :].tolist()
+        return 0, host_values(ints, wdev)
+    values = host_values(ints[2 * rows - 1 :], wdev)
     return values[0], values[1:]
 
 
