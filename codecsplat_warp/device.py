@@ -469,6 +469,28 @@ def radix_sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_b
     sort(keys.data_ptr(), values.data_ptr(), count, 0, end_bit, 4)
 
 
+def inclusive_scan(values: torch.Tensor, out: torch.Tensor) -> None:
+    """``torch.cumsum(values, 0, out=out)`` for contiguous 1-D int64 tensors of equal length, by Warp's native scan on
+    the tensors' memory (CUB on CUDA, on Warp's current stream: call it inside :func:`warp_scope`). One native call
+    on the host, against 25 us for ``torch.cumsum`` on a lent H100's host.
+
+    Raises:
+        InputError: wrong dtype, shape or length, or not contiguous.
+    """
+    for name, tensor in (("values", values), ("out", out)):
+        if tensor.dtype != torch.int64 or tensor.dim() != 1 or not tensor.is_contiguous():
+            raise InputError(f"inclusive scan {name} must be a contiguous 1-D int64 tensor")
+    if values.numel() != out.numel():
+        raise InputError(f"inclusive scan of {values.numel()} values into {out.numel()}")
+    if values.numel() == 0:
+        return
+    core = warp_context.runtime.core
+    scan = core.wp_array_scan_int64_device if values.is_cuda else core.wp_array_scan_int64_host
+    succeeded = scan(values.data_ptr(), out.data_ptr(), values.numel(), 8, 8, 1, True)
+    if values.is_cuda and not succeeded:  # the host scan returns nothing
+        raise RuntimeError(f"Warp's scan failed: {warp_context.runtime.get_error_string()}")
+
+
 _SORT_KEYS = {torch.uint32: "wp_radix_sort_pairs_uint", torch.int64: "wp_radix_sort_pairs_int64"}
 """Key dtypes :func:`radix_sort_pairs` takes, and the stem of Warp's native sort for each."""
 
@@ -622,10 +644,11 @@ def check_tensor(
     """
     if not isinstance(tensor, torch.Tensor):
         raise InputError(f"{name} must be a torch.Tensor, got {type(tensor).__name__}")
-    if tensor.dim() != len(shape):
-        raise InputError(f"{name} must have shape {_shape_text(shape)}, got {tuple(tensor.shape)}")
+    sizes = tensor.shape
+    if len(sizes) != len(shape):
+        raise InputError(f"{name} must have shape {_shape_text(shape)}, got {tuple(sizes)}")
     dims = {} if dims is None else dims
-    for axis, (want, got) in enumerate(zip(shape, tensor.shape)):
+    for axis, (want, got) in enumerate(zip(shape, sizes)):
         if want is None:
             continue
         if isinstance(want, str):
@@ -635,11 +658,11 @@ def check_tensor(
                     f"{name} has {want}={got} on axis {axis} but another argument has {want}={bound}"
                 )
         elif want != got:
-            raise InputError(f"{name} must have shape {_shape_text(shape)}, got {tuple(tensor.shape)}")
+            raise InputError(f"{name} must have shape {_shape_text(shape)}, got {tuple(sizes)}")
     if tensor.dtype not in dtypes:
         allowed = ", ".join(str(d).replace("torch.", "") for d in dtypes)
         raise InputError(f"{name} must have dtype {allowed}, got {str(tensor.dtype).replace('torch.', '')}")
-    return tensor.contiguous()
+    return tensor if tensor.is_contiguous() else tensor.contiguous()
 
 
 def check_same_dtype(**tensors: torch.Tensor | None) -> torch.dtype:

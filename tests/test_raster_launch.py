@@ -15,7 +15,7 @@ import torch
 import warp as wp
 from conftest import DEVICES
 
-from codecsplat_warp.device import host_values, launch, radix_sort_pairs, vectors, warp_scope
+from codecsplat_warp.device import host_values, inclusive_scan, launch, radix_sort_pairs, vectors, warp_scope
 from codecsplat_warp.errors import InputError
 
 
@@ -152,3 +152,21 @@ def test_warp_scope_runs_on_torchs_current_stream_and_restores_warps(device):
         assert torch.equal(out.cpu(), torch.full((300,), 21.0))
     if before is not None:
         assert wp.get_device(str(device)).stream is before
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("count", [1, 7, 100_003])
+def test_inclusive_scan_is_cumsum_in_int64(device, count):
+    g = torch.Generator().manual_seed(count)
+    values = torch.randint(0, 2**40, (count,), generator=g, dtype=torch.int64)  # sums far beyond int32
+    out = torch.full_like(values, -1).to(device)
+    with warp_scope(torch.device(device)):
+        inclusive_scan(values.to(device), out)
+    assert torch.equal(out.cpu(), torch.cumsum(values, 0))
+
+
+def test_inclusive_scan_rejects_other_dtypes_and_lengths():
+    with pytest.raises(InputError, match="values"):
+        inclusive_scan(torch.zeros(4, dtype=torch.int32), torch.zeros(4, dtype=torch.int64))
+    with pytest.raises(InputError, match="4 values into 3"):
+        inclusive_scan(torch.zeros(4, dtype=torch.int64), torch.zeros(3, dtype=torch.int64))

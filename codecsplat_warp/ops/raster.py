@@ -33,8 +33,8 @@ import torch
 import warp as wp
 
 from ..device import (
-    FLOAT_DTYPES, check_finite, check_tensor, common_device, host_values, launch, matrices, radix_sort_pairs,
-    validation_enabled, vectors, warp_dtype, warp_scope,
+    FLOAT_DTYPES, check_finite, check_tensor, common_device, host_values, inclusive_scan, launch, matrices,
+    radix_sort_pairs, validation_enabled, vectors, warp_dtype, warp_scope,
 )  # fmt: skip
 from ..errors import InputError, RasterMemoryError
 from ..kernels import raster_composite, raster_project, raster_tiles
@@ -368,7 +368,7 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
         _prepare_cameras(viewmats, Ks, colors_or_black, cameras, flags, wdev)
         radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, visible,
                          ranges, wdev)  # fmt: skip
-        torch.cumsum(tile_counts, 0, out=offsets)
+        inclusive_scan(tile_counts, offsets)
         composite = _composite_launch(device, settings.tile_size, len(ranges))
         color, depth, alpha, state, last = _composite_outputs(B, settings, splats)
         count, flag_values = _read_count_and_flags(ints, B * N, wdev)
