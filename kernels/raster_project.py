@@ -48,9 +48,9 @@ ROW_WIDTH = 10
 """Scalars per projected row."""
 
 (BAD_MEANS, BAD_QUATS, BAD_SCALES, BAD_OPACITIES, BAD_COLORS, BAD_VIEWMATS, BAD_KS, BAD_BACKGROUND, ZERO_QUATS,
- HUGE_COVARIANCE, VISIBLE_COUNT) = range(11)
+ HUGE_COVARIANCE) = range(10)
 """Slots of the int64 flag array: non-finite rows per Gaussian argument, non-finite entries per camera argument,
-zero quaternions, covariances that overflow (the validation flags), and the length of the list of visible rows."""
+zero quaternions, covariances that overflow (the validation flags)."""
 
 DEPTH_RANGE = CACHE_LINE_INT64
 """First slot of the range of the visible depths' float32 bit patterns (the range the sort key packs, see
@@ -246,6 +246,7 @@ def prepare_cameras(
     out_Ks: wp.array3d(dtype=Any),
     origin: wp.array(dtype=Any),
     flags: wp.array(dtype=wp.int64),
+    visible_count: wp.array(dtype=wp.int64),
 ):
     """Validate the cameras, cast them to the Gaussians' dtype and make them camera-relative (``dim=1``).
 
@@ -256,14 +257,16 @@ def prepare_cameras(
         out_viewmats: ``[B,4,4]`` ``viewmats T(origin)`` composed in float64, in the output dtype;
         out_Ks: ``[B,3,3]`` the intrinsics in the output dtype; origin: ``[3]`` the mean camera centre rounded
             to the output dtype (world units), or 0.
-        flags: ``[NUM_FLAGS]`` counters: camera and background slots set, Gaussian slots and the visible-row count
-            zeroed, every depth-range line empty (``NO_DEPTH_BITS``, 0).
+        flags: ``[NUM_FLAGS]`` counters: camera and background slots set, Gaussian slots zeroed, every depth-range
+            line empty (``NO_DEPTH_BITS``, 0).
+        visible_count: ``[1]`` int64, zeroed (the length of the projection's visible-row list).
     """
     num = viewmats.shape[0]
     for slot in range(NUM_FLAGS):
         flags[slot] = wp.int64(0)
     for line in range(DEPTH_RANGE_LINES):
         flags[DEPTH_RANGE + line * CACHE_LINE_INT64] = _NO_DEPTH_BITS
+    visible_count[0] = wp.int64(0)
     bad_background = wp.int64(0)
     for b in range(background.shape[0]):
         for c in range(3):
@@ -366,6 +369,7 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         radii: wp.array(dtype=wp.vec2i),
         tile_counts: wp.array(dtype=wp.int64),
         flags: wp.array(dtype=wp.int64),
+        visible_count: wp.array(dtype=wp.int64),
         visible_rows: wp.array(dtype=wp.int32),
         tile_ranges: wp.array(dtype=wp.vec2i),
     ):
@@ -382,11 +386,10 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
                 only visible rows, and ten scattered stores per culled Gaussian cost more than the projection).
             splats: output rows ``[B*N, 10]``; radii: ``[B*N]`` pixel radii (0 = culled);
             tile_counts: ``[B*N]`` int64 tiles touched; flags: ``[NUM_FLAGS]`` counters (initialised by
-                :func:`prepare_cameras`): validation counts, the range of the visible depths' float32 bits, and
-                ``VISIBLE_COUNT``, the length of the list of visible rows;
-            visible_rows: ``[B*N]`` int32: the first ``flags[VISIBLE_COUNT]`` entries receive the flat index of every
-                visible row, in no particular order (the list the differentiable twin walks, so that its work
-                follows the visible Gaussians).
+                :func:`prepare_cameras`): validation counts and the range of the visible depths' float32 bits.
+            visible_count: ``[1]`` int64 (zeroed by :func:`prepare_cameras`), visible_rows: ``[B*N]`` int32: the
+                first ``visible_count[0]`` entries receive the flat index of every visible row, in no particular
+                order (the list the differentiable twin walks, so that its work follows the visible Gaussians).
             tile_ranges: ``[T]`` int32 pairs set to zero (the tile binning's output, zeroed here because this is the
                 one parallel launch before the binning; it saves a fill launch), or ``[0]``.
         """
@@ -448,7 +451,7 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         rect = tile_rect(mean2d[0], mean2d[1], radius, tile_size, tiles_x, tiles_y)
         radii[i] = radius
         tile_counts[i] = wp.int64((rect[2] - rect[0]) * (rect[3] - rect[1]))
-        visible_rows[warp_append(flags, VISIBLE_COUNT)] = i
+        visible_rows[warp_append(visible_count, 0)] = i
         warp_fold_range(flags, DEPTH_RANGE, DEPTH_RANGE_LINES, wp.cast(wp.float32(p[2]), wp.int32))
 
     @wp.kernel(module="unique", launch_bounds=DIFFERENTIABLE_LAUNCH_BOUNDS)
@@ -461,7 +464,7 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         viewmats: wp.array(dtype=Any),
         Ks: wp.array(dtype=Any),
         origin: wp.array(dtype=Any),
-        flags: wp.array(dtype=wp.int64),
+        visible_count: wp.array(dtype=wp.int64),
         visible_rows: wp.array(dtype=wp.int32),
         sh_degree: int,
         width: int,
@@ -471,7 +474,7 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         splats: wp.array2d(dtype=Any),
     ):
         """The differentiable part of :func:`project_gaussians` for the visible rows it listed (``dim=B*N``: thread
-        ``t < flags[VISIBLE_COUNT]`` takes row ``visible_rows[t]``, the others return at once).
+        ``t < visible_count[0]`` takes row ``visible_rows[t]``, the others return at once).
 
         Launch with ``adjoint=True``, ``adj_outputs`` = gradient of the rows, to get gradients of means,
         quats, scales, opacities and coeffs (accumulated over cameras). Culled rows get no gradient. Walking the
@@ -479,7 +482,7 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         visible: with 90 % of the Gaussians off-screen nearly every warp would.
         """
         t = wp.tid()
-        if wp.int64(t) >= flags[VISIBLE_COUNT]:
+        if wp.int64(t) >= visible_count[0]:
             return
         i = visible_rows[t]
         b = i // means.shape[0]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import math
 import struct
 
@@ -10,7 +11,7 @@ import torch
 from conftest import DEVICES
 
 from codecsplat_warp.errors import InputError, RasterMemoryError
-from codecsplat_warp.kernels.raster_project import NO_DEPTH_BITS, VISIBLE_COUNT
+from codecsplat_warp.kernels.raster_project import NO_DEPTH_BITS
 from codecsplat_warp.ops.raster import project_gaussians, rasterize, sort_key_layout
 from codecsplat_warp.reference.raster import rasterize_dense
 from codecsplat_warp.synthetic import random_gaussians as make_scene
@@ -378,19 +379,30 @@ def test_projection_lists_each_visible_row_once(device):
     outputs, saved = raster_ops._render(means, quats, scales, opacities, colors, background, viewmats, Ks, settings,
                                         raster_ops.DEFAULT_MAX_INTERSECTION_BYTES)  # fmt: skip
     visible = outputs[3].reshape(-1, 2).any(dim=-1).nonzero().flatten().cpu()
-    listed = saved.visible.rows[: int(saved.visible.flags[VISIBLE_COUNT])].cpu().to(torch.int64)
+    listed = saved.visible.rows[: int(saved.visible.count)].cpu().to(torch.int64)
     assert 100 < len(visible) < 600 and (visible < 300).any() and (visible >= 300).any()
     assert torch.equal(listed.sort().values, visible)
+    # what the backward keeps is its own memory, not a view of the forward's [2*B*N + flags] int64 buffer
+    assert saved.visible.count.untyped_storage().nbytes() == 8
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_projection_folds_the_visible_depth_range(device):
+def test_projection_folds_the_visible_depth_range(device, monkeypatch):
     """The smallest and largest float32 bit pattern of a visible row's depth, as the projection folds them over the
-    lines of the flag buffer (on CUDA from 94 warps spread over the lines; culled rows, here the ones behind the
-    camera, left out)."""
+    lines of the flag buffer and the sync reads them (on CUDA from 94 warps spread over the lines; culled rows, here
+    the ones behind the camera, left out)."""
     import codecsplat_warp.ops.raster as raster_ops
     from codecsplat_warp.kernels.raster_project import depth_bits_range
 
+    read = raster_ops._read_count_and_flags
+    flag_values = []
+
+    def spy(*args):
+        count, values = read(*args)
+        flag_values.append(values)
+        return count, values
+
+    monkeypatch.setattr(raster_ops, "_read_count_and_flags", spy)
     means, quats, scales, opacities, colors, viewmats, Ks = make_scene(3000, 40, 30, dtype=torch.float32, seed=6)
     means[::4, 2] *= -1.0
     inputs = [t.to(device) for t in (means, quats, scales, opacities, colors, viewmats, Ks)]
@@ -402,7 +414,7 @@ def test_projection_folds_the_visible_depth_range(device):
     depths = saved.splats[visible, 9].float().cpu()
     assert 1000 < len(depths) < 3000
     want = (float32_bits(depths.min().item()), float32_bits(depths.max().item()))
-    assert depth_bits_range(saved.visible.flags.tolist()) == want
+    assert [depth_bits_range(values) for values in flag_values] == [want]
 
 
 def test_too_many_tiles_for_the_sort_key_is_a_typed_error():
@@ -499,7 +511,7 @@ def test_projection_zeroes_every_tile_range(device, monkeypatch):
     project = raster_ops._project
 
     def poisoned(*args, **kwargs):
-        args[10].fill_(7)
+        inspect.signature(project).bind(*args, **kwargs).arguments["ranges"].fill_(7)
         return project(*args, **kwargs)
 
     monkeypatch.setattr(raster_ops, "_project", poisoned)

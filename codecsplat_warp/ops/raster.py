@@ -141,20 +141,24 @@ def _rows_and_cameras(means: torch.Tensor, num_cameras: int) -> tuple[torch.Tens
 
 class _Visible(NamedTuple):
     """The projection's list of visible rows, which the projection backward walks (uninitialised until the
-    projection fills it).
+    projection fills it). Its own allocations: the backward keeps it, not the forward's B*N int64 buffers.
 
     Attributes:
-        flags: the ``[NUM_FLAGS]`` int64 flag buffer, whose slot ``VISIBLE_COUNT`` holds the length of the list;
-        rows: ``[B*N]`` int32 flat row indices, the first ``flags[VISIBLE_COUNT]`` valid.
+        count: ``[1]`` int64 length of the list; rows: ``[B*N]`` int32 flat row indices, the first ``count`` valid.
     """
 
-    flags: torch.Tensor
+    count: torch.Tensor
     rows: torch.Tensor
 
 
-def _prepare_cameras(viewmats, Ks, background, cameras: _Cameras, flags: torch.Tensor, wdev) -> None:
-    """Launch :func:`~codecsplat_warp.kernels.raster_project.prepare_cameras`; it also initialises ``flags`` (the
-    length of the list of visible rows included).
+def _visible_list(means: torch.Tensor, rows: int) -> _Visible:
+    return _Visible(means.new_empty(1, dtype=torch.int64), means.new_empty(rows, dtype=torch.int32))
+
+
+def _prepare_cameras(viewmats, Ks, background, cameras: _Cameras, flags: torch.Tensor, visible: _Visible,
+                     wdev) -> None:  # fmt: skip
+    """Launch :func:`~codecsplat_warp.kernels.raster_project.prepare_cameras`; it also initialises ``flags`` and
+    the length of the ``visible`` list.
 
     Args:
         viewmats: ``[B,4,4]``, Ks: ``[B,3,3]`` as given (float32 or float64); background: ``[B,3]`` or ``[0,3]``.
@@ -165,8 +169,8 @@ def _prepare_cameras(viewmats, Ks, background, cameras: _Cameras, flags: torch.T
     launch(
         raster_project.prepare_cameras,
         1,
-        [viewmats, Ks, background, int(dtype != torch.float64), cameras.viewmats, cameras.Ks, cameras.origin,
-         flags],  # fmt: skip
+        [viewmats, Ks, background, int(dtype != torch.float64), cameras.viewmats, cameras.Ks, cameras.origin, flags,
+         visible.count],  # fmt: skip
         wdev,
         layout=(viewmats.dtype, Ks.dtype, dtype),
     )
@@ -186,10 +190,10 @@ _ZERO = {dtype: warp_dtype(dtype)(0.0) for dtype in FLOAT_DTYPES}
 
 
 def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, settings: _Settings, splats: torch.Tensor,
-             tile_counts: torch.Tensor, visible: _Visible, ranges: torch.Tensor, wdev,
+             tile_counts: torch.Tensor, flags: torch.Tensor, visible: _Visible, ranges: torch.Tensor, wdev,
              zero_culled: bool = False) -> torch.Tensor:  # fmt: skip
     """Fill the projected rows ``splats [B*N, 10]`` (rows of culled Gaussians only with ``zero_culled``, else left
-    as they were), ``tile_counts [B*N]``, the flags and the ``visible`` list, and zero the tile ``ranges``
+    as they were), ``tile_counts [B*N]``, ``flags`` and the ``visible`` list, and zero the tile ``ranges``
     ``[T, 2]`` int32 (``[0, 2]`` for none); return radii ``[B*N, 2]`` int32."""
     dtype = means.dtype
     scalar = warp_dtype(dtype)
@@ -213,7 +217,8 @@ def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, setting
             splats,
             vectors(radii),
             tile_counts,
-            visible.flags,
+            flags,
+            visible.count,
             visible.rows,
             vectors(ranges),
         ],
@@ -241,7 +246,7 @@ def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, camera
         B * N,
         [
             *_projection_inputs(means, quats, scales, opacities, coeffs, cameras),
-            visible.flags,
+            visible.count,
             visible.rows,
             settings.sh_degree,
             settings.width,
@@ -267,10 +272,11 @@ class _ProjectGaussians(torch.autograd.Function):
             (B * N, raster_project.NUM_FLAGS)
         )
         splats, cameras = _rows_and_cameras(means, B)
-        visible = _Visible(flags, means.new_empty(B * N, dtype=torch.int32))
+        visible = _visible_list(means, B * N)
         with warp_scope(means.device) as wdev:
-            _prepare_cameras(viewmats, Ks, _absent(means, 3), cameras, flags, wdev)
-            radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, visible,
+            _prepare_cameras(viewmats, Ks, _absent(means, 3), cameras, flags, visible, wdev)
+            radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, flags,
+                             visible,
                              tile_counts.new_empty(0, 2, dtype=torch.int32), wdev, zero_culled=True)  # fmt: skip
         ctx.settings = settings
         ctx.cameras = cameras
@@ -361,13 +367,13 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
     ints = means.new_empty(2 * B * N + raster_project.NUM_FLAGS, dtype=torch.int64)
     tile_counts, offsets, flags = ints.split_with_sizes((B * N, B * N, raster_project.NUM_FLAGS))
     splats, cameras = _rows_and_cameras(means, B)
-    visible = _Visible(flags, means.new_empty(B * N, dtype=torch.int32))
+    visible = _visible_list(means, B * N)
     # everything whose size does not depend on the count is allocated before the sync (the projection zeroes ranges)
     ranges = tile_counts.new_empty(B * settings.tiles_x * settings.tiles_y, 2, dtype=torch.int32)
     with warp_scope(device) as wdev:
-        _prepare_cameras(viewmats, Ks, colors_or_black, cameras, flags, wdev)
-        radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, visible,
-                         ranges, wdev)  # fmt: skip
+        _prepare_cameras(viewmats, Ks, colors_or_black, cameras, flags, visible, wdev)
+        radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, flags,
+                         visible, ranges, wdev)  # fmt: skip
         inclusive_scan(tile_counts, offsets)
         composite = _composite_launch(device, settings.tile_size, len(ranges))
         color, depth, alpha, state, last = _composite_outputs(B, settings, splats)
