@@ -115,7 +115,7 @@ const int low = __reduce_min_sync(active, value);
 const int high = __reduce_max_sync(active, value);
 if (static_cast<int>(lane) == leader) {
     const unsigned line = (blockIdx.x * (blockDim.x >> 5u) + (threadIdx.x >> 5u)) % static_cast<unsigned>(lines);
-    long long* range = reinterpret_cast<long long*>(counters.data) + first + 16u * line;
+    long long* range = reinterpret_cast<long long*>(counters.data) + first + CACHE_LINE_INT64 * line;
     atomicMin(range, static_cast<long long>(low));
     atomicMax(range + 1, static_cast<long long>(high));
 }
@@ -129,7 +129,7 @@ seen = __atomic_load_n(high, __ATOMIC_RELAXED);
 while (value > seen && !__atomic_compare_exchange_n(high, &seen, static_cast<wp::int64>(value), false,
                                                     __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {}
 #endif
-"""
+""".replace("CACHE_LINE_INT64", f"{CACHE_LINE_INT64}u")
 
 
 @wp.func_native(_WARP_FOLD_RANGE)

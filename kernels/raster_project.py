@@ -35,7 +35,7 @@ from typing import Any, NamedTuple
 import warp as wp
 
 from .lanes import CACHE_LINE_INT64, warp_append, warp_fold_range
-from .raster_tiles import tile_rect
+from .raster_tiles import depth_bits, tile_rect
 from .sh import sh_color
 
 ALPHA_THRESHOLD = 1.0 / 255.0
@@ -452,7 +452,7 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         radii[i] = radius
         tile_counts[i] = wp.int64((rect[2] - rect[0]) * (rect[3] - rect[1]))
         visible_rows[warp_append(visible_count, 0)] = i
-        warp_fold_range(flags, DEPTH_RANGE, DEPTH_RANGE_LINES, wp.cast(wp.float32(p[2]), wp.int32))
+        warp_fold_range(flags, DEPTH_RANGE, DEPTH_RANGE_LINES, depth_bits(p[2]))
 
     @wp.kernel(module="unique", launch_bounds=DIFFERENTIABLE_LAUNCH_BOUNDS)
     def project_gaussians_differentiable(

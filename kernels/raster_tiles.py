@@ -41,9 +41,15 @@ def tile_rect(x: Any, y: Any, radius: wp.vec2i, tile_size: int, tiles_x: int, ti
 
 
 @wp.func
+def depth_bits(depth: Any):
+    """The float32 bit pattern of a positive depth, as an int32 (positive float32 values sort like it)."""
+    return wp.cast(wp.float32(depth), wp.int32)
+
+
+@wp.func
 def depth_key(depth: Any, depth_base: int, depth_shift: int):
     """The depth part of a sort key (see the module docstring) as an int64."""
-    return wp.int64((wp.cast(wp.float32(depth), wp.int32) - depth_base) >> depth_shift)
+    return wp.int64((depth_bits(depth) - depth_base) >> depth_shift)
 
 
 @wp.kernel
