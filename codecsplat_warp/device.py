@@ -187,23 +187,60 @@ def _warp_stream(wdev, handle: int) -> "wp.Stream":
 
 
 _pinned = threading.local()
-"""``buffer``: this thread's pinned int64 staging buffer for :func:`host_values`."""
+"""This thread's staging for :func:`stage_host_values`: ``buffer``, a pinned int64 buffer; ``events``, one Warp
+event per CUDA device ordinal; ``generation``, how many reads were staged (a read is valid until the next one)."""
 
 
-def host_values(tensor: torch.Tensor, wdev) -> list:
-    """``tensor.tolist()`` for a small contiguous int64 tensor. On CUDA (inside :func:`warp_scope`, whose Warp device
-    ``wdev`` is) the values go through this thread's pinned buffer: one asynchronous copy on torch's current stream
-    and a sync of that stream, instead of torch's copy to pageable memory (23 us per read on a lent H100's host)."""
+class HostValues:
+    """Values of a small int64 tensor on their way to the host (made by :func:`stage_host_values`): either read
+    already (``ready``, on the CPU) or staged in pinned memory behind a Warp ``event``."""
+
+    __slots__ = ("ready", "staged", "event", "generation")
+
+    def __init__(self, ready: list | None, staged: torch.Tensor | None = None, event=None, generation: int = 0):
+        self.ready = ready
+        self.staged = staged
+        self.event = event
+        self.generation = generation
+
+    def values(self) -> list:
+        """The values as a list of ints; on CUDA this waits for the copy only, not for later work on the stream.
+
+        Raises:
+            RuntimeError: a later :func:`stage_host_values` in this thread has reused the staging buffer.
+        """
+        if self.ready is not None:
+            return self.ready
+        if _pinned.generation != self.generation:
+            raise RuntimeError("a later stage_host_values in this thread reused the buffer of this read")
+        wp.synchronize_event(self.event)
+        return self.staged.tolist()
+
+
+def stage_host_values(tensor: torch.Tensor, wdev) -> HostValues:
+    """Start reading a small contiguous int64 tensor back to the host, as it is once the work queued so far has
+    run; :meth:`HostValues.values` finishes the read.
+
+    On CUDA (inside :func:`warp_scope`, whose Warp device ``wdev`` is) the values go through this thread's pinned
+    buffer: one asynchronous copy on torch's current stream, then an event, so that the host can queue more work
+    on the stream before it waits, and waits for the copy alone (torch's ``tolist`` copies to pageable memory and
+    syncs the whole stream: 23 us per read on a lent H100's host). One read per thread at a time: staging the next
+    one invalidates the previous one. On the CPU the values are read at once."""
     if not tensor.is_cuda:
-        return tensor.tolist()
+        return HostValues(tensor.tolist())
+    if not hasattr(_pinned, "events"):
+        _pinned.buffer, _pinned.events, _pinned.generation = None, {}, 0
     count = tensor.numel()
-    buffer = getattr(_pinned, "buffer", None)
-    if buffer is None or buffer.numel() < count:
-        buffer = _pinned.buffer = torch.empty(max(count, 1024), dtype=torch.int64, pin_memory=True)
-    staged = buffer[:count]
+    if _pinned.buffer is None or _pinned.buffer.numel() < count:
+        _pinned.buffer = torch.empty(max(count, 1024), dtype=torch.int64, pin_memory=True)
+    event = _pinned.events.get(wdev.ordinal)
+    if event is None:
+        event = _pinned.events[wdev.ordinal] = wp.Event(wdev)
+    staged = _pinned.buffer[:count]
     staged.copy_(tensor, non_blocking=True)
-    wp.synchronize_stream(wdev.stream)
-    return staged.tolist()
+    wdev.stream.record_event(event)
+    _pinned.generation += 1
+    return HostValues(None, staged, event, _pinned.generation)
 
 
 def to_warp(tensor: torch.Tensor, dtype=None):

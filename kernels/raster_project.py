@@ -35,7 +35,7 @@ from typing import Any, NamedTuple
 import warp as wp
 
 from .lanes import CACHE_LINE_INT64, warp_append, warp_fold_range
-from .raster_tiles import depth_bits, tile_rect
+from .raster_tiles import DEPTH_RANGE, DEPTH_RANGE_LINES, NO_DEPTH_BITS, NUM_FLAGS, depth_bits, tile_rect
 from .sh import sh_color
 
 ALPHA_THRESHOLD = 1.0 / 255.0
@@ -50,28 +50,8 @@ ROW_WIDTH = 10
 (BAD_MEANS, BAD_QUATS, BAD_SCALES, BAD_OPACITIES, BAD_COLORS, BAD_VIEWMATS, BAD_KS, BAD_BACKGROUND, ZERO_QUATS,
  HUGE_COVARIANCE) = range(10)
 """Slots of the int64 flag array: non-finite rows per Gaussian argument, non-finite entries per camera argument,
-zero quaternions, covariances that overflow (the validation flags)."""
-
-DEPTH_RANGE = CACHE_LINE_INT64
-"""First slot of the range of the visible depths' float32 bit patterns (the range the sort key packs, see
-:mod:`.raster_tiles`): ``DEPTH_RANGE_LINES`` lines of :func:`~.lanes.warp_fold_range`."""
-
-DEPTH_RANGE_LINES = 16
-"""Cache lines the projection's warps spread their depth-range atomics over (one line: 55 -> 75 us for the
-projection of 917,504 Gaussians on an H100, most of it queueing on the line)."""
-
-NUM_FLAGS = DEPTH_RANGE + DEPTH_RANGE_LINES * CACHE_LINE_INT64
-
-NO_DEPTH_BITS = 2**31 - 1
-"""Initial minimum of every depth-range line (larger than any float32 bit pattern of a positive depth); the
-maxima start at 0."""
-
-
-def depth_bits_range(flag_values: list[int]) -> tuple[int, int]:
-    """``(smallest, largest)`` float32 bit pattern of a visible depth, from the flag values read back
-    (``(NO_DEPTH_BITS, 0)`` when no row is visible)."""
-    lines = range(DEPTH_RANGE, DEPTH_RANGE + DEPTH_RANGE_LINES * CACHE_LINE_INT64, CACHE_LINE_INT64)
-    return min(flag_values[k] for k in lines), max(flag_values[k + 1] for k in lines)
+zero quaternions, covariances that overflow (the validation flags; the buffer's other slots, from
+:data:`.raster_tiles.KEY_LAYOUT` on, belong to the sort key, see :mod:`.raster_tiles`)."""
 
 _NO_DEPTH_BITS = wp.constant(wp.int64(NO_DEPTH_BITS))
 

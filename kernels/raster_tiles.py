@@ -9,6 +9,13 @@ caller picks ``depth_shift`` so that the key fits the key dtype (uint32 or int64
 depths within ``2^s`` float32 units in the last place of each other tie, and ties keep the order of the
 rows (the sort is stable). The value is the flat index ``camera * N + gaussian`` of the Gaussian's projected
 row.
+
+The key's layout is computed on the device (:func:`sort_key_layout`), from the range of the visible depths that
+the projection folds into the int64 flag buffer (:data:`DEPTH_RANGE`), by :func:`publish_key_layout`, which
+writes it into the flag buffer (:data:`KEY_LAYOUT`) for :func:`emit_intersections` and for the host. So the keys
+can be emitted, and sorted, before the host has read the intersection count: into buffers of a guessed capacity,
+which the host checks afterwards (see ``codecsplat_warp.ops.raster``). The int64 flag buffer's slots from :data:`KEY_LAYOUT`
+on are defined here; the projection's validation counters take the slots below it.
 """
 
 from __future__ import annotations
@@ -17,7 +24,50 @@ from typing import Any
 
 import warp as wp
 
+from .lanes import CACHE_LINE_INT64
+
 wp.set_module_options({"enable_backward": False})
+
+KEY_LAYOUT = 12
+"""First of four int64 flag slots where :func:`publish_key_layout` writes the sort key layout of the call:
+``depth_base, depth_shift, depth_bits, bits`` (see :func:`sort_key_layout`)."""
+
+DEPTH_RANGE = CACHE_LINE_INT64
+"""First flag slot of the range of the visible depths' float32 bit patterns (what the sort key packs):
+``DEPTH_RANGE_LINES`` lines of :func:`~.lanes.warp_fold_range`, folded by the projection."""
+
+DEPTH_RANGE_LINES = 16
+"""Cache lines the projection's warps spread their depth-range atomics over (one line: 55 -> 75 us for the
+projection of 917,504 Gaussians on an H100, most of it queueing on the line)."""
+
+NUM_FLAGS = DEPTH_RANGE + DEPTH_RANGE_LINES * CACHE_LINE_INT64
+"""Length of the int64 flag buffer."""
+
+NO_DEPTH_BITS = 2**31 - 1
+"""Initial minimum of every depth-range line (larger than any float32 bit pattern of a positive depth); the
+maxima start at 0."""
+
+MAX_DEPTH_SHIFT = 2
+"""Most low bits a 32-bit sort key may drop from the depth (see :func:`sort_key_layout`): depths within
+``2^2 = 4`` float32 units in the last place (4.8e-7 relative) of each other then tie and keep row order. That is
+the size of the rounding error of the float32 depth ``z = r . x + t`` itself (three products, three sums)."""
+
+PAD_KEY = wp.constant(wp.int64(2**63 - 1))
+"""Key of the padding after the last intersection of a buffer longer than the count: every bit below bit 63 set
+(as a uint32: every bit), so padding sorts after every intersection (after equal keys too: the sort is stable)."""
+
+
+def depth_bits_range(flag_values: list[int]) -> tuple[int, int]:
+    """``(smallest, largest)`` float32 bit pattern of a visible depth, from the flag values read back
+    (``(NO_DEPTH_BITS, 0)`` when no row is visible)."""
+    lines = range(DEPTH_RANGE, DEPTH_RANGE + DEPTH_RANGE_LINES * CACHE_LINE_INT64, CACHE_LINE_INT64)
+    return min(flag_values[k] for k in lines), max(flag_values[k + 1] for k in lines)
+
+
+def key_layout(flag_values: list[int]) -> tuple[int, int, int, int]:
+    """``(depth_base, depth_shift, depth_bits, bits)`` of the call's sort key as :func:`publish_key_layout` wrote
+    it, from the flag values read back after it ran."""
+    return tuple(flag_values[KEY_LAYOUT : KEY_LAYOUT + 4])
 
 DEPTH_COLUMN = 9
 """Column of the projected row (see :mod:`codecsplat_warp.kernels.raster_project`) holding camera-space depth."""
@@ -52,45 +102,109 @@ def depth_key(depth: Any, depth_base: int, depth_shift: int):
     return wp.int64((depth_bits(depth) - depth_base) >> depth_shift)
 
 
+@wp.func
+def bit_length(value: wp.int64):
+    """Bits needed to write a non-negative ``value`` (Python's ``int.bit_length``: 0 for 0)."""
+    bits = int(0)
+    rest = value
+    for halving in range(6):
+        step = 32 >> halving
+        if rest >> wp.int64(step) != wp.int64(0):
+            rest = rest >> wp.int64(step)
+            bits += step
+    if rest != wp.int64(0):
+        bits += 1
+    return bits
+
+
+@wp.func
+def sort_key_layout(flags: wp.array(dtype=wp.int64), num_tiles: int):
+    """The sort key of a call with ``num_tiles`` flat tiles (cameras x tiles per image), from the visible depths'
+    bit range in ``flags`` (:data:`DEPTH_RANGE`): ``vec4i(depth_base, depth_shift, depth_bits, bits)``.
+
+    The depth part keeps the bits the range spans (``depth_bits``, above the ``depth_shift`` dropped ones); the
+    tile index goes above it. A key of ``bits <= 32`` is stored as a uint32: when tile and depth bits fit in 32
+    after dropping at most :data:`MAX_DEPTH_SHIFT` low depth bits (half the sort passes of a 64-bit key, two thirds
+    of the bytes). Otherwise nothing is dropped and ``bits > 32``: a lossless int64 key. An empty range (no visible
+    depth) has no depth bits.
+    """
+    low = flags[DEPTH_RANGE]
+    high = flags[DEPTH_RANGE + 1]
+    for line in range(1, DEPTH_RANGE_LINES):
+        low = wp.min(low, flags[DEPTH_RANGE + line * CACHE_LINE_INT64])
+        high = wp.max(high, flags[DEPTH_RANGE + line * CACHE_LINE_INT64 + 1])
+    tile_bits = bit_length(wp.int64(num_tiles - 1))
+    span_bits = bit_length(wp.max(high - low, wp.int64(0)))
+    shift = wp.max(0, tile_bits + span_bits - 32)
+    if shift > MAX_DEPTH_SHIFT:
+        shift = 0
+    return wp.vec4i(int(low), shift, span_bits - shift, tile_bits + span_bits - shift)
+
+
+@wp.kernel
+def publish_key_layout(flags: wp.array(dtype=wp.int64), num_tiles: int):
+    """Write the call's :func:`sort_key_layout` into ``flags`` at :data:`KEY_LAYOUT` (``dim = 1``), for
+    :func:`emit_intersections` and for the host.
+
+    Args:
+        flags: the int64 flag buffer holding the visible depth range as the projection folded it.
+        num_tiles: flat tiles ``B * tiles_x * tiles_y`` (below 2^31).
+    """
+    layout = sort_key_layout(flags, num_tiles)
+    for j in range(4):
+        flags[KEY_LAYOUT + j] = wp.int64(layout[j])
+
+
 @wp.kernel
 def emit_intersections(
     splats: wp.array2d(dtype=Any),
     radii: wp.array(dtype=wp.vec2i),
     counts: wp.array(dtype=wp.int64),
     inclusive_offsets: wp.array(dtype=wp.int64),
+    flags: wp.array(dtype=wp.int64),
     num_gaussians: int,
     tile_size: int,
     tiles_x: int,
     tiles_y: int,
-    depth_base: int,
-    depth_shift: int,
-    depth_bits: int,
+    capacity: int,
     keys: wp.array(dtype=Any),
     values: wp.array(dtype=wp.int32),
 ):
-    """Write the keys and values of every intersection of one projected Gaussian (one thread per row).
+    """Write the keys and values of every intersection of one projected Gaussian (one thread per row), the first
+    ``capacity`` of them, and pad the buffers from the intersection count up to ``capacity``.
+
+    With ``capacity`` >= the count every intersection is written and the rest of the capacity holds
+    :data:`PAD_KEY`, so a sort of ``capacity`` pairs orders the intersections as a sort of exactly the count would;
+    with ``capacity`` < the count the buffers are incomplete (the host discards them).
 
     Args:
         splats: projected rows ``[B*N, 10]`` (x, y, conic..., depth in column 9).
         radii: pixel radii ``[B*N]``; zero means culled.
-        counts: int64 intersections per row ``[B*N]``; ``inclusive_offsets`` their inclusive prefix sum
-            (the total is below 2^31, checked by the caller).
-        depth_base, depth_shift, depth_bits: the depth key (module docstring): the smallest float32 bit pattern
-            of a visible depth, the bits dropped below it, and the key bits it occupies.
-        keys: uint32 or int64 output, values: int32 output, each at least ``sum(counts)`` long.
+        counts: int64 intersections per row ``[B*N]``; ``inclusive_offsets`` their inclusive prefix sum.
+        flags: the int64 flag buffer with the key layout that :func:`publish_key_layout` wrote.
+        capacity: intersections the buffers take (below 2^31).
+        keys: uint32 (a layout of ``bits <= 32``) or int64 output, values: int32 output (row indices; 0 for
+            padding), each at least ``capacity`` long.
     """
     i = wp.tid()
+    total = int(inclusive_offsets[inclusive_offsets.shape[0] - 1])
+    for p in range(total + i, capacity, inclusive_offsets.shape[0]):
+        keys[p] = keys.dtype(PAD_KEY)
+        values[p] = 0
     count = counts[i]
     if count == wp.int64(0):
         return
     first_tile = (i // num_gaussians) * tiles_x * tiles_y
     rect = tile_rect(splats[i, 0], splats[i, 1], radii[i], tile_size, tiles_x, tiles_y)
-    low = depth_key(splats[i, DEPTH_COLUMN], depth_base, depth_shift)
+    low = depth_key(splats[i, DEPTH_COLUMN], int(flags[KEY_LAYOUT]), int(flags[KEY_LAYOUT + 1]))
+    depth_key_bits = wp.int64(flags[KEY_LAYOUT + 2])
     k = int(inclusive_offsets[i] - count)
     for ty in range(rect[1], rect[3]):
         for tx in range(rect[0], rect[2]):
+            if k >= capacity:
+                return
             tile = wp.int64(first_tile + ty * tiles_x + tx)
-            keys[k] = keys.dtype((tile << wp.int64(depth_bits)) | low)
+            keys[k] = keys.dtype((tile << depth_key_bits) | low)
             values[k] = i
             k += 1
 

@@ -11,8 +11,9 @@ import torch
 from conftest import DEVICES
 
 from codecsplat_warp.errors import InputError, RasterMemoryError
-from codecsplat_warp.kernels.raster_project import NO_DEPTH_BITS
-from codecsplat_warp.ops.raster import project_gaussians, rasterize, sort_key_layout
+from codecsplat_warp.kernels import raster_tiles
+from codecsplat_warp.kernels.raster_tiles import NO_DEPTH_BITS
+from codecsplat_warp.ops.raster import SortKey, project_gaussians, rasterize
 from codecsplat_warp.reference.raster import rasterize_dense
 from codecsplat_warp.synthetic import random_gaussians as make_scene
 
@@ -392,17 +393,15 @@ def test_projection_folds_the_visible_depth_range(device, monkeypatch):
     lines of the flag buffer and the sync reads them (on CUDA from 94 warps spread over the lines; culled rows, here
     the ones behind the camera, left out)."""
     import codecsplat_warp.ops.raster as raster_ops
-    from codecsplat_warp.kernels.raster_project import depth_bits_range
 
-    read = raster_ops._read_count_and_flags
+    read = raster_tiles.key_layout
     flag_values = []
 
-    def spy(*args):
-        count, values = read(*args)
+    def spy(values):
         flag_values.append(values)
-        return count, values
+        return read(values)
 
-    monkeypatch.setattr(raster_ops, "_read_count_and_flags", spy)
+    monkeypatch.setattr(raster_tiles, "key_layout", spy)
     means, quats, scales, opacities, colors, viewmats, Ks = make_scene(3000, 40, 30, dtype=torch.float32, seed=6)
     means[::4, 2] *= -1.0
     inputs = [t.to(device) for t in (means, quats, scales, opacities, colors, viewmats, Ks)]
@@ -414,7 +413,8 @@ def test_projection_folds_the_visible_depth_range(device, monkeypatch):
     depths = saved.splats[visible, 9].float().cpu()
     assert 1000 < len(depths) < 3000
     want = (float32_bits(depths.min().item()), float32_bits(depths.max().item()))
-    assert [depth_bits_range(values) for values in flag_values] == [want]
+    assert [raster_tiles.depth_bits_range(values) for values in flag_values] == [want]
+    assert read(flag_values[0])[0] == want[0]  # the published layout's depth base
 
 
 def test_too_many_tiles_for_the_sort_key_is_a_typed_error():
@@ -428,6 +428,23 @@ def float32_bits(value: float) -> int:
     return struct.unpack("<i", struct.pack("<f", value))[0]
 
 
+def published_key_layout(num_tiles: int, nearest_bits: int, farthest_bits: int, device: str) -> SortKey:
+    """The sort key that the device publishes for a depth range folded into two different lines of a flag buffer
+    (the other lines empty), as the projection leaves it."""
+    from codecsplat_warp.device import launch, warp_scope
+    from codecsplat_warp.kernels.lanes import CACHE_LINE_INT64
+
+    flags = torch.zeros(raster_tiles.NUM_FLAGS, dtype=torch.int64)
+    lines = raster_tiles.DEPTH_RANGE + CACHE_LINE_INT64 * torch.arange(raster_tiles.DEPTH_RANGE_LINES)
+    flags[lines] = NO_DEPTH_BITS
+    flags[lines[3]], flags[lines[7] + 1] = nearest_bits, farthest_bits
+    flags = flags.to(device)
+    with warp_scope(torch.device(device)) as wdev:
+        launch(raster_tiles.publish_key_layout, 1, [flags, num_tiles], wdev)
+    return SortKey(*raster_tiles.key_layout(flags.tolist()))
+
+
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize(
     "num_tiles, nearest, farthest, want",
     [
@@ -435,19 +452,26 @@ def float32_bits(value: float) -> int:
         (256, 1.5, 9.0, (torch.uint32, 1, 24)),  # the RE10K bench: 25 depth bits + 8 tile bits, one dropped
         (448, 1.5, 9.0, (torch.uint32, 2, 23)),  # the DL3DV bench: 9 tile bits, two dropped
         (1024, 1.0, 8.0, (torch.int64, 0, 25)),  # 32 bits would drop three: a lossless 64-bit key
+        (2**31 - 1, 1.0, 8.0, (torch.int64, 0, 25)),  # the most flat tiles a call may have (31 bits)
     ],
 )
-def test_sort_key_layout_packs_the_depth_span(num_tiles, nearest, farthest, want):
-    key = sort_key_layout(num_tiles, float32_bits(nearest), float32_bits(farthest))
+def test_published_sort_key_layout_packs_the_depth_span(device, num_tiles, nearest, farthest, want):
+    key = published_key_layout(num_tiles, float32_bits(nearest), float32_bits(farthest), device)
     assert (key.dtype, key.depth_shift, key.depth_bits) == want
     assert key.depth_base == float32_bits(nearest)
     assert key.bits == (num_tiles - 1).bit_length() + key.depth_bits
     assert key.bytes_per_intersection == (16 if key.dtype == torch.uint32 else 24)
 
 
-def test_sort_key_layout_of_an_empty_depth_range():
-    key = sort_key_layout(4, NO_DEPTH_BITS, 0)
+def test_published_sort_key_layout_of_an_empty_depth_range():
+    key = published_key_layout(4, NO_DEPTH_BITS, 0, "cpu")
     assert (key.dtype, key.depth_shift, key.depth_bits, key.bits) == (torch.uint32, 0, 0, 2)
+
+
+def test_key_layout_slots_follow_the_validation_flags():
+    from codecsplat_warp.kernels import raster_project
+
+    assert raster_project.HUGE_COVARIANCE < raster_tiles.KEY_LAYOUT and raster_tiles.KEY_LAYOUT + 4 <= raster_tiles.DEPTH_RANGE
 
 
 def scene_at_depths(nearest, farthest, n=40, size=32, seed=4):
@@ -468,13 +492,14 @@ def test_every_sort_key_layout_matches_dense_reference(device, nearest, farthest
     drops two depth bits, and a 64-bit key; each renders like the dense reference."""
     import codecsplat_warp.ops.raster as raster_ops
 
+    read = raster_tiles.key_layout
     layouts = []
 
-    def spy(*args):
-        layouts.append(sort_key_layout(*args))
-        return layouts[-1]
+    def spy(values):
+        layouts.append(SortKey(*read(values)))
+        return read(values)
 
-    monkeypatch.setattr(raster_ops, "sort_key_layout", spy)
+    monkeypatch.setattr(raster_tiles, "key_layout", spy)
     scene = [t.to(device) for t in scene_at_depths(nearest, farthest)]
     ours, ref, grads_ours, grads_ref = render_both(scene, 32, 32, tile_size=1)
     assert [(key.dtype, key.depth_shift) for key in layouts] == [want]
@@ -519,3 +544,124 @@ def test_projection_zeroes_every_tile_range(device, monkeypatch):
     assert 0 < outputs[4] < 480 and (clean.ranges == 0).all(dim=1).sum() > 100
     assert torch.equal(saved.ranges, clean.ranges)
     assert torch.equal(outputs[0], clean_outputs[0])
+
+
+@pytest.fixture
+def speculating(monkeypatch):
+    """Speculative binning on every device (the CPU included), with no guess from earlier calls; yields the list
+    of the capacities of every emit launch."""
+    import codecsplat_warp.ops.raster as raster_ops
+
+    monkeypatch.setattr(raster_ops, "SPECULATIVE_DEVICE_TYPES", ("cpu", "cuda"))
+    monkeypatch.setattr(raster_ops, "_speculations", {})
+    emit = raster_ops._emit
+    capacities = []
+
+    def spy(binning, capacity, *args):
+        capacities.append(capacity)
+        return emit(binning, capacity, *args)
+
+    monkeypatch.setattr(raster_ops, "_emit", spy)
+    return capacities
+
+
+def render_with_gradients(scene, size, tile_size):
+    """Images and the gradients of a random weighting of them (as :func:`render_both`, without the reference)."""
+    leaves = [t.detach().clone().requires_grad_() for t in scene[:5]]
+    rgb, depth, alpha, meta = rasterize(*leaves, *scene[5:], size, size, tile_size=tile_size)
+    g = torch.Generator().manual_seed(2)
+    loss = sum((o * torch.rand(o.shape, generator=g, dtype=o.dtype).to(o.device)).sum() for o in (rgb, depth, alpha))
+    return [rgb, depth, alpha, meta.radii, *torch.autograd.grad(loss, leaves)], meta.intersection_count
+
+
+def assert_same_render(a, b):
+    for x, y in zip(a, b):
+        assert torch.equal(x, y)
+
+
+def exact_render(scene, size, tile_size):
+    """:func:`render_with_gradients` without speculation."""
+    import codecsplat_warp.ops.raster as raster_ops
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(raster_ops, "SPECULATIVE_DEVICE_TYPES", ())
+        return render_with_gradients(scene, size, tile_size)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_speculative_binning_renders_exactly_like_the_exact_one(device, speculating):
+    """The first call of a shape bins after the host read, exactly; the next ones emit and sort into the guessed
+    capacity (count + 1/8 + 1024, padded) before it, once each, and render bit for bit the same images and
+    gradients."""
+    scene = [t.to(device) for t in make_scene(40, 24, 24, 2, dtype=torch.float32, seed=8)]
+    exact, count = exact_render(scene, 24, 16)
+    assert speculating == [count]
+    speculating.clear()
+    for _ in range(3):
+        assert_same_render(render_with_gradients(scene, 24, 16)[0], exact)
+    assert speculating == [count] + [count + count // 8 + 1024] * 2
+
+
+def scene_with_more_intersections(scene, factor):
+    return [scene[0], scene[1], scene[2] * factor, *scene[3:]]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize(
+    "first, second, tile_size, wrong",
+    [
+        ("few", "many", 1, "capacity"),  # the guessed capacity is too small (3,981 + 1/8 + 1024 < 10,843)
+        ((2.0, 2.9), (1.0, 9.0), 1, "key dtype"),  # a 32-bit key guessed, a 64-bit key needed (1024 tiles)
+        ((2.0, 2.01), (2.0, 7.0), 16, "sort bits"),  # a 24-bit sort guessed (2 tile + 17 depth bits), 26 needed
+    ],
+)
+def test_a_wrong_guess_bins_again_exactly(device, first, second, tile_size, wrong, speculating):
+    """A call whose guess from the call before does not hold its intersections emits and sorts them again into
+    exact buffers, and renders as without speculation."""
+    import codecsplat_warp.ops.raster as raster_ops
+
+    def scene_for(kind):
+        if kind in ("few", "many"):
+            scene = make_scene(40, 32, 32, seed=9)
+            return scene_with_more_intersections(scene, 1.0 if kind == "few" else 4.0)
+        return scene_at_depths(*kind)
+
+    scenes = [[t.to(device) for t in scene_for(kind)] for kind in (first, second)]
+    exact, count = exact_render(scenes[1], 32, tile_size)
+    render_with_gradients(scenes[0], 32, tile_size)
+    guess = next(iter(raster_ops._speculations.values()))
+    speculating.clear()
+    assert_same_render(render_with_gradients(scenes[1], 32, tile_size)[0], exact)
+    assert speculating == [guess.capacity, count]
+    after = next(iter(raster_ops._speculations.values()))
+    assert {"capacity": count > guess.capacity, "key dtype": (guess.key_dtype, after.key_dtype) == (torch.uint32, torch.int64),
+            "sort bits": (guess.end_bit, after.end_bit) == (24, 32)}[wrong]  # fmt: skip
+
+
+def test_speculative_capacity_is_cut_to_the_sort_budget(speculating):
+    """A guess larger than ``max_intersection_bytes`` allows is cut to it: a budget of exactly the count renders,
+    one byte less raises the typed error."""
+    scene = make_scene(30, 32, 32)
+    count = rasterize(*scene, 32, 32)[3].intersection_count
+    speculating.clear()
+    rasterize(*scene, 32, 32, max_intersection_bytes=16 * count)
+    assert speculating == [count]
+    with pytest.raises(RasterMemoryError, match=f"{count:,} tile intersections need {16 * count:,} bytes"):
+        rasterize(*scene, 32, 32, max_intersection_bytes=16 * count - 1)
+
+
+def test_speculations_round_the_sort_bits_and_forget_the_oldest_shape(speculating):
+    """The guessed sort covers whole 8-bit radix digits of the key (at most its width); the guesses of 64 shapes
+    are kept, the least recent one dropped first."""
+    import codecsplat_warp.ops.raster as raster_ops
+
+    for bits, key_dtype, end_bit in [(0, torch.uint32, 0), (19, torch.uint32, 24), (32, torch.uint32, 32),
+                                     (33, torch.int64, 40), (62, torch.int64, 64)]:  # fmt: skip
+        raster_ops._remember("shape", 800, SortKey(0, 0, 0, bits))
+        assert raster_ops._speculations["shape"] == raster_ops._Speculation(800 + 100 + 1024, key_dtype, end_bit)
+    for k in range(64):
+        raster_ops._remember(k, 1, SortKey(0, 0, 0, 8))
+    assert len(raster_ops._speculations) == 64 and "shape" not in raster_ops._speculations
+    raster_ops._remember(0, 1, SortKey(0, 0, 0, 8))  # 0 becomes the most recent: 1 goes next
+    raster_ops._remember("new", 1, SortKey(0, 0, 0, 8))
+    assert 0 in raster_ops._speculations and 1 not in raster_ops._speculations

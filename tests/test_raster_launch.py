@@ -15,7 +15,7 @@ import torch
 import warp as wp
 from conftest import DEVICES
 
-from codecsplat_warp.device import host_values, inclusive_scan, launch, radix_sort_pairs, vectors, warp_scope
+from codecsplat_warp.device import inclusive_scan, launch, radix_sort_pairs, stage_host_values, vectors, warp_scope
 from codecsplat_warp.errors import InputError
 
 
@@ -135,7 +135,7 @@ def test_radix_sort_pairs_rejects_short_or_mistyped_buffers():
 @pytest.mark.parametrize("device", DEVICES)
 def test_warp_scope_runs_on_torchs_current_stream_and_restores_warps(device):
     """Inside the scope Warp's device stream is torch's current one (here a side stream with a slow kernel queued
-    first, which a launch and host_values must wait for); after it, Warp's own stream again."""
+    first, which a launch and a staged host read must wait for); after it, Warp's own stream again."""
     device = torch.device(device)
     side = torch.cuda.Stream(device) if device.type == "cuda" else None
     before = wp.get_device(str(device)).stream if device.type == "cuda" else None
@@ -148,10 +148,31 @@ def test_warp_scope_runs_on_torchs_current_stream_and_restores_warps(device):
             if side is not None:
                 assert wdev.stream.cuda_stream == side.cuda_stream
             out = _run(torch.ones(300, 3, device=device), values.double().float(), 1.0, 0)
-            assert host_values(values, wdev) == [7] * 300
+            assert stage_host_values(values, wdev).values() == [7] * 300
         assert torch.equal(out.cpu(), torch.full((300,), 21.0))
     if before is not None:
         assert wp.get_device(str(device)).stream is before
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_staged_host_read_waits_for_its_copy_only_and_is_invalidated_by_the_next(device):
+    """A read staged before slow work is queued returns the values as they were when it was staged; on CUDA without
+    waiting for the slow work, and a second staged read makes the first one an error (they share a buffer)."""
+    device = torch.device(device)
+    values = torch.arange(5, dtype=torch.int64, device=device)
+    with warp_scope(device) as wdev:
+        first = stage_host_values(values, wdev)
+        if device.type == "cuda":
+            torch.cuda._sleep(200_000_000)  # ~100 ms of GPU time queued after the copy
+        values += 10
+        assert first.values() == [0, 1, 2, 3, 4]
+        if device.type == "cuda":
+            assert not torch.cuda.current_stream(device).query()  # the slow work still runs
+        second = stage_host_values(values, wdev)
+        if device.type == "cuda":
+            with pytest.raises(RuntimeError, match="reused the buffer"):
+                first.values()
+        assert second.values() == [10, 11, 12, 13, 14]
 
 
 @pytest.mark.parametrize("device", DEVICES)

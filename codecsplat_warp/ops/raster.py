@@ -8,11 +8,15 @@ Function (or, when nothing needs a gradient, called without one) so that a call 
    composed in float64, so that a scene far from the world origin keeps its precision).
 2. EWA projection, one thread per (camera, Gaussian): a packed row ``[x, y, conic(3), opacity, rgb, depth]``,
    pixel radii, tiles touched and input-validation flags.
-3. Prefix sum of the tile counts; ONE host sync reads the intersection count and the flags (adjacent in one
-   int64 buffer), then the memory budget is checked before anything is allocated for sorting.
-4. One key ``[camera | tile | depth]`` per intersection, 32 bits when the call's depth range allows (see
-   :func:`sort_key_layout`), else 64; Warp's radix sort (:func:`~codecsplat_warp.device.radix_sort_pairs`) on the
-   used bits only, per-tile ranges from the sorted keys.
+3. Prefix sum of the tile counts; ONE host read of the intersection count and the flags (adjacent in one
+   int64 buffer), then the memory budget is checked before anything of the count's size is allocated.
+4. One key ``[camera | tile | depth]`` per intersection, 32 bits when the call's depth range allows, else 64 (the
+   layout is computed on the device, see :mod:`codecsplat_warp.kernels.raster_tiles`); Warp's radix sort
+   (:func:`~codecsplat_warp.device.radix_sort_pairs`) on the used bits only, per-tile ranges from the sorted keys.
+   On CUDA, a call with the shape of an earlier one emits and sorts its keys *before* the host read, into buffers
+   of a capacity guessed from that call (:class:`_Speculation`), so that the GPU does not wait for the host
+   around the read; when the read shows the guess too small (or the key too wide), the keys are emitted and
+   sorted again into buffers of the exact size. Either way the sorted order, and so the render, is the same.
 5. Front-to-back compositing per tile (rows staged in shared memory; expected depth normalised in the
    kernel), and a hand-written back-to-front backward. Projection gradients come from an adjoint launch of
    its straight-line twin kernel.
@@ -33,8 +37,8 @@ import torch
 import warp as wp
 
 from ..device import (
-    FLOAT_DTYPES, check_finite, check_tensor, common_device, host_values, inclusive_scan, launch, matrices,
-    radix_sort_pairs, validation_enabled, vectors, warp_dtype, warp_scope,
+    FLOAT_DTYPES, check_finite, check_tensor, common_device, inclusive_scan, launch, matrices, radix_sort_pairs,
+    stage_host_values, validation_enabled, vectors, warp_dtype, warp_scope,
 )  # fmt: skip
 from ..errors import InputError, RasterMemoryError
 from ..kernels import raster_composite, raster_project, raster_tiles
@@ -43,11 +47,6 @@ _LOW_PRECISION = (torch.float16, torch.bfloat16)
 
 DEFAULT_MAX_INTERSECTION_BYTES = 4 << 30
 """Default budget for the intersection sort buffers (keys and values, double-buffered): 4 GiB."""
-
-MAX_DEPTH_SHIFT = 2
-"""Most low bits a 32-bit sort key may drop from the depth (see :func:`sort_key_layout`): depths within
-``2^2 = 4`` float32 units in the last place (4.8e-7 relative) of each other then tie and keep row order. That is
-the size of the rounding error of the float32 depth ``z = r . x + t`` itself (three products, three sums)."""
 
 LOW_PASS_PX2 = 0.3
 """Screen-space low-pass blur added to the 2D covariance diagonal, in px^2 (gsplat's eps2d)."""
@@ -268,8 +267,8 @@ class _ProjectGaussians(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, coeffs, viewmats, Ks, settings: _Settings):
         B, N = viewmats.shape[0], means.shape[0]
-        tile_counts, flags = means.new_empty(B * N + raster_project.NUM_FLAGS, dtype=torch.int64).split_with_sizes(
-            (B * N, raster_project.NUM_FLAGS)
+        tile_counts, flags = means.new_empty(B * N + raster_tiles.NUM_FLAGS, dtype=torch.int64).split_with_sizes(
+            (B * N, raster_tiles.NUM_FLAGS)
         )
         splats, cameras = _rows_and_cameras(means, B)
         visible = _visible_list(means, B * N)
@@ -364,11 +363,12 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
     device, dtype = means.device, means.dtype
     coeffs = _sh_coefficients(colors)
     colors_or_black = _absent(means, 3) if background is None else background
-    ints = means.new_empty(2 * B * N + raster_project.NUM_FLAGS, dtype=torch.int64)
-    tile_counts, offsets, flags = ints.split_with_sizes((B * N, B * N, raster_project.NUM_FLAGS))
+    ints = means.new_empty(2 * B * N + raster_tiles.NUM_FLAGS, dtype=torch.int64)
+    tile_counts, offsets, flags = ints.split_with_sizes((B * N, B * N, raster_tiles.NUM_FLAGS))
     splats, cameras = _rows_and_cameras(means, B)
     visible = _visible_list(means, B * N)
-    # everything whose size does not depend on the count is allocated before the sync (the projection zeroes ranges)
+    # everything whose size does not depend on the count is allocated before the host read (the projection zeroes
+    # the ranges)
     ranges = tile_counts.new_empty(B * settings.tiles_x * settings.tiles_y, 2, dtype=torch.int32)
     with warp_scope(device) as wdev:
         _prepare_cameras(viewmats, Ks, colors_or_black, cameras, flags, visible, wdev)
@@ -377,12 +377,12 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
         inclusive_scan(tile_counts, offsets)
         composite = _composite_launch(device, settings.tile_size, len(ranges))
         color, depth, alpha, state, last = _composite_outputs(B, settings, splats)
-        count, flag_values = _read_count_and_flags(ints, B * N, wdev)
-        if validation_enabled():
-            _raise_on_flags(flag_values)
-        key = sort_key_layout(len(ranges), *raster_project.depth_bits_range(flag_values))
-        _check_budget(count, key, max_intersection_bytes)
-        sorted_ids = _bin_intersections(splats, radii, tile_counts, offsets, count, B, settings, key, ranges, wdev)
+        binning = _Binning(splats, radii, ints, tile_counts, offsets, flags, B, settings, len(ranges))
+        speculation_shape = (device, B, N, settings.width, settings.height, settings.tile_size)
+        count, sorted_ids = _bin_intersections(
+            binning, ranges, speculation_shape if device.type in SPECULATIVE_DEVICE_TYPES else None,
+            max_intersection_bytes, wdev,
+        )  # fmt: skip
         common = _composite_args(ranges, sorted_ids, splats, colors_or_black, settings, composite.blocks_per_tile)
         threshold = warp_dtype(dtype)(settings.min_transmittance)
         launch(composite.kernels[0], composite.blocks, [*common, threshold, color, depth, alpha, state, last], wdev,
@@ -496,7 +496,8 @@ def rasterize(
         render_depth: also render expected depth ``sum w z / max(alpha, 1e-10)``; False skips that work.
         tile_size: tile edge in pixels (1..32; 16 is the tuned default).
         max_intersection_bytes: budget for the intersection sort buffers (16 bytes per intersection with 32-bit
-            sort keys, 24 with 64-bit ones; see :func:`sort_key_layout`).
+            sort keys, 24 with 64-bit ones; see :class:`SortKey`). On CUDA a call may hold sort buffers for up to
+            1/8 more intersections than it has (see :class:`_Speculation`), never more than this budget.
         min_transmittance: early stop, in [0, 1): a pixel stops compositing before the first Gaussian that
             would take its transmittance ``T`` to this value or below (gsplat's 1e-4 by default). Larger
             values skip more of the hidden Gaussians (faster, a larger error against an exact render);
@@ -516,7 +517,7 @@ def rasterize(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, far, background, mode,
         sh_degree, render_depth, tile_size, min_transmittance,
     )  # fmt: skip
-    if means.shape[0] == 0:
+    if means.shape[0] == 0 or viewmats.shape[0] == 0:
         for name, tensor in (("viewmats", viewmats), ("Ks", Ks), ("background", background)):
             if tensor is not None:
                 check_finite(name, tensor)
@@ -651,66 +652,100 @@ def _sh_degree(colors: torch.Tensor, sh_degree: int | None) -> int:
     return int(sh_degree)
 
 
+MAX_TILE_BITS = 31
+"""Bits of the flat tile index ``camera * tiles_per_image + tile``, an int32 in the kernels (a call has fewer than
+2^31 flat tiles); a 64-bit key keeps its sign bit 0 with the 31 bits of a positive float32 depth beside it."""
+
+
 def _check_key_bits(num_cameras: int, settings: _Settings) -> None:
     tiles = num_cameras * settings.tiles_x * settings.tiles_y
-    if (tiles - 1).bit_length() > 63 - FLOAT32_DEPTH_BITS:
+    if tiles >= 2**MAX_TILE_BITS:
         raise InputError(
             f"{num_cameras} cameras x {settings.tiles_x * settings.tiles_y} tiles do not fit the "
-            f"{63 - FLOAT32_DEPTH_BITS}-bit tile part of the sort key; render fewer cameras per call or use larger tiles"
+            f"{MAX_TILE_BITS}-bit tile part of the sort key; render fewer cameras per call or use larger tiles"
         )
 
 
-FLOAT32_DEPTH_BITS = 31
-"""Bits of a positive float32 depth (its sign bit is 0): the most a sort key's depth part can need (a 64-bit key
-keeps its sign bit 0, so 32 bits are left for the flat tile index)."""
-
-
 class SortKey(NamedTuple):
-    """How one call packs its intersection sort keys ``[flat tile | depth key]`` (see
-    :mod:`codecsplat_warp.kernels.raster_tiles`).
+    """How one call packs its intersection sort keys ``[flat tile | depth key]`` (computed on the device by
+    :func:`codecsplat_warp.kernels.raster_tiles.sort_key_layout`).
 
     Attributes:
-        dtype: ``torch.uint32`` or ``torch.int64``; depth_base: the smallest float32 bit pattern of a visible depth;
-        depth_shift: low depth bits dropped (ties within ``2^depth_shift`` float32 ulps); depth_bits: key bits of
-        the depth part; bits: key bits in use (the radix sort's end bit).
+        depth_base: the smallest float32 bit pattern of a visible depth; depth_shift: low depth bits dropped (ties
+        within ``2^depth_shift`` float32 ulps); depth_bits: key bits of the depth part; bits: key bits in use (the
+        radix sort's end bit).
     """
 
-    dtype: torch.dtype
     depth_base: int
     depth_shift: int
     depth_bits: int
     bits: int
 
     @property
+    def dtype(self) -> torch.dtype:
+        """``torch.uint32`` for a key of at most 32 bits, else ``torch.int64``."""
+        return torch.uint32 if self.bits <= 32 else torch.int64
+
+    @property
     def bytes_per_intersection(self) -> int:
         """Sort buffer bytes per intersection: the key and an int32 value, each twice (radix sort scratch)."""
-        return 2 * (self.dtype.itemsize + 4)
+        return _bytes_per_intersection(self.dtype)
 
 
-def sort_key_layout(num_tiles: int, depth_bits_min: int, depth_bits_max: int) -> SortKey:
-    """The sort key of a call with ``num_tiles`` flat tiles (cameras x tiles per image) whose visible depths have
-    float32 bit patterns in ``[depth_bits_min, depth_bits_max]``.
+def _bytes_per_intersection(key_dtype: torch.dtype) -> int:
+    return 2 * (key_dtype.itemsize + 4)
 
-    The depth part keeps the bits that span needs; a 32-bit key when it fits in 32 bits after dropping at most
-    :data:`MAX_DEPTH_SHIFT` low depth bits (half the sort passes of a 64-bit key, two thirds of the bytes), else
-    a lossless 64-bit key. An empty range (no visible depth) gives a 32-bit key with no depth bits.
+
+class _Speculation(NamedTuple):
+    """What a CUDA call guesses from the last call of its shape, to emit and sort before its host read.
+
+    Attributes:
+        capacity: intersections the sort buffers take; key_dtype: ``torch.uint32`` or ``torch.int64``; end_bit:
+        key bits the sort orders (rounded up to a multiple of 8, the radix sort's digit: no extra pass).
     """
-    tile_bits = (num_tiles - 1).bit_length()
-    span_bits = max(depth_bits_max - depth_bits_min, 0).bit_length()
-    shift = max(0, tile_bits + span_bits - 32)
-    if shift <= MAX_DEPTH_SHIFT:
-        return SortKey(torch.uint32, depth_bits_min, shift, span_bits - shift, tile_bits + span_bits - shift)
-    return SortKey(torch.int64, depth_bits_min, 0, span_bits, tile_bits + span_bits)
+
+    capacity: int
+    key_dtype: torch.dtype
+    end_bit: int
+
+    def covers(self, count: int, key: SortKey) -> bool:
+        """Whether buffers and a sort set up by this guess hold the call's ``count`` intersections of ``key``."""
+        return count <= self.capacity and key.dtype == self.key_dtype and key.bits <= self.end_bit
 
 
-def _read_count_and_flags(ints: torch.Tensor, rows: int, wdev) -> tuple[int, list[int]]:
-    """The single host sync of a forward: the intersection count (the last inclusive offset) and the flags, read
-    together from the int64 buffer ``[tile counts (rows) | offsets (rows) | flags]`` (inside :func:`warp_scope`,
-    whose Warp device ``wdev`` is)."""
-    if rows == 0:
-        return 0, host_values(ints, wdev)
-    values = host_values(ints[2 * rows - 1 :], wdev)
-    return values[0], values[1:]
+SPECULATIVE_DEVICE_TYPES = ("cuda",)
+"""Device types on which a call emits and sorts before its host read (:class:`_Speculation`); on the CPU the
+read costs nothing, and a guessed capacity only sorts more."""
+
+SPECULATION_SLACK = 1 / 8
+"""The guessed capacity is the last count of the shape plus this fraction of it, plus
+:data:`SPECULATION_MIN_SLACK`."""
+
+SPECULATION_MIN_SLACK = 1024
+
+_MAX_SPECULATIONS = 64
+_speculations: dict[tuple, _Speculation] = {}
+"""The guess for each call shape ``(device, B, N, width, height, tile_size)``; the least recent goes first."""
+
+
+def _speculation(shape: tuple, max_bytes: int) -> _Speculation | None:
+    """The guess for a call of ``shape``, its capacity cut to the sort budget ``max_bytes``; None before the first
+    call of that shape."""
+    guess = _speculations.get(shape)
+    if guess is None:
+        return None
+    affordable = max_bytes // _bytes_per_intersection(guess.key_dtype)
+    return guess if guess.capacity <= affordable else guess._replace(capacity=affordable)
+
+
+def _remember(shape: tuple, count: int, key: SortKey) -> None:
+    """Keep the guess for the next call of ``shape`` after one with ``count`` intersections of ``key``."""
+    _speculations.pop(shape, None)
+    if len(_speculations) >= _MAX_SPECULATIONS:
+        del _speculations[next(iter(_speculations))]
+    capacity = min(count + int(count * SPECULATION_SLACK) + SPECULATION_MIN_SLACK, 2**31 - 1)
+    end_bit = min(-(-key.bits // 8) * 8, 8 * key.dtype.itemsize)
+    _speculations[shape] = _Speculation(capacity, key.dtype, end_bit)
 
 
 def _raise_on_flags(flag_values: list[int]) -> None:
@@ -736,48 +771,91 @@ def _check_budget(count: int, key: SortKey, max_bytes: int) -> None:
         )
 
 
-def _bin_intersections(splats, radii, tile_counts, offsets, count: int, num_cameras: int, settings: _Settings,
-                       key: SortKey, ranges: torch.Tensor, wdev) -> torch.Tensor:  # fmt: skip
-    """Sorted row ids ``[count]`` (int32) of the rows ``[B*N, 10]``, sorted by keys laid out as ``key`` says; fills
-    the per-tile ranges ``[B*tiles, 2]`` (int32, zeroed by the projection)."""
-    keys = tile_counts.new_empty(2 * count, dtype=key.dtype)
-    values = ranges.new_empty(2 * count)
-    if count == 0:
-        return values
+class _Binning(NamedTuple):
+    """What the tile binning of one call reads: projected ``splats [B*N, 10]``, ``radii [B*N, 2]`` int32, and the
+    int64 buffer ``ints = [tile counts (B*N) | inclusive offsets (B*N) | flags]`` with its three parts."""
+
+    splats: torch.Tensor
+    radii: torch.Tensor
+    ints: torch.Tensor
+    tile_counts: torch.Tensor
+    offsets: torch.Tensor
+    flags: torch.Tensor
+    num_cameras: int
+    settings: _Settings
+    num_tiles: int
+
+
+def _sort_buffers(like: torch.Tensor, capacity: int, key_dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """Uninitialised keys and int32 values for a sort of ``capacity`` pairs, each twice as long (sort scratch)."""
+    return like.new_empty(2 * capacity, dtype=key_dtype), like.new_empty(2 * capacity, dtype=torch.int32)
+
+
+def _emit(binning: _Binning, capacity: int, keys: torch.Tensor, values: torch.Tensor, wdev) -> None:
+    """Launch :func:`~codecsplat_warp.kernels.raster_tiles.emit_intersections` over every row."""
+    splats, settings = binning.splats, binning.settings
     launch(
         raster_tiles.emit_intersections,
         splats.shape[0],
         [
             splats,
-            vectors(radii),
-            tile_counts,
-            offsets,
-            splats.shape[0] // num_cameras,
+            vectors(binning.radii),
+            binning.tile_counts,
+            binning.offsets,
+            binning.flags,
+            splats.shape[0] // binning.num_cameras,
             settings.tile_size,
             settings.tiles_x,
             settings.tiles_y,
-            key.depth_base,
-            key.depth_shift,
-            key.depth_bits,
+            capacity,
             keys,
             values,
         ],
         wdev,
-        layout=(splats.dtype, key.dtype),
+        layout=(splats.dtype, keys.dtype),
     )
-    radix_sort_pairs(keys, values, count, key.bits)
-    launch(raster_tiles.tile_ranges, count, [keys, count, key.depth_bits, ranges], wdev, layout=key.dtype)
-    return values[:count]
+
+
+def _bin_intersections(binning: _Binning, ranges: torch.Tensor, speculation_shape: tuple | None, max_bytes: int,
+                       wdev) -> tuple[int, torch.Tensor]:  # fmt: skip
+    """Emit, sort and range the intersections: return their count and the sorted row ids ``[count]`` (int32) of
+    the projected rows; fill the per-tile ranges ``[B*tiles, 2]`` (int32, zeroed by the projection).
+
+    The call's one host read happens here: the count (the last offset), the flags and the key layout.
+    ``speculation_shape`` names the call's shape for a :class:`_Speculation` (None: none). Raises InputError on a
+    validation flag and RasterMemoryError when the sort buffers would exceed ``max_bytes``.
+    """
+    launch(raster_tiles.publish_key_layout, 1, [binning.flags, binning.num_tiles], wdev, layout=())
+    read = stage_host_values(binning.ints[2 * binning.splats.shape[0] - 1 :], wdev)
+    guess = None if speculation_shape is None else _speculation(speculation_shape, max_bytes)
+    if guess is not None:
+        keys, values = _sort_buffers(binning.ints, guess.capacity, guess.key_dtype)
+        _emit(binning, guess.capacity, keys, values, wdev)
+        radix_sort_pairs(keys, values, guess.capacity, guess.end_bit)
+    count, *flag_values = read.values()
+    if validation_enabled():
+        _raise_on_flags(flag_values)
+    key = SortKey(*raster_tiles.key_layout(flag_values))
+    _check_budget(count, key, max_bytes)
+    if guess is None or not guess.covers(count, key):
+        keys = values = None  # a wrong guess's buffers go before the exact ones are allocated
+        keys, values = _sort_buffers(binning.ints, count, key.dtype)
+        _emit(binning, count, keys, values, wdev)
+        radix_sort_pairs(keys, values, count, key.bits)
+    if speculation_shape is not None:
+        _remember(speculation_shape, count, key)
+    launch(raster_tiles.tile_ranges, count, [keys, count, key.depth_bits, ranges], wdev, layout=keys.dtype)
+    return count, values[:count]
 
 
 def _empty_render(means, viewmats, background, settings: _Settings):
-    """Output for N = 0: the background (or black), zero alpha and depth."""
+    """Output for N = 0 Gaussians or B = 0 cameras: the background (or black), zero alpha and depth."""
     B, H, W = viewmats.shape[0], settings.height, settings.width
     zeros = means.new_zeros(B, H, W, 1)
     if background is not None:
         color = background[:, None, None, :].expand(B, H, W, 3).clone()
     else:
         color = means.new_zeros(B, H, W, 3)
-    radii = torch.zeros(B, 0, 2, dtype=torch.int32, device=means.device)
+    radii = torch.zeros(B, means.shape[0], 2, dtype=torch.int32, device=means.device)
     depth = zeros.clone() if settings.render_depth else None
     return color, depth, zeros, RasterMeta(radii, 0, settings.tile_size)
