@@ -575,8 +575,11 @@ def render_with_gradients(scene, size, tile_size):
 
 
 def assert_same_render(a, b):
-    for x, y in zip(a, b):
+    """Images and radii bit for bit; gradients to float32 rounding (CUDA's atomic sums run in no fixed order)."""
+    for x, y in zip(a[:4], b[:4]):
         assert torch.equal(x, y)
+    for x, y in zip(a[4:], b[4:]):
+        assert torch.equal(x, y) if x.device.type == "cpu" else relative_error(x, y) < 1e-5
 
 
 def exact_render(scene, size, tile_size):
@@ -589,10 +592,10 @@ def exact_render(scene, size, tile_size):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_speculative_binning_renders_exactly_like_the_exact_one(device, speculating):
+def test_speculative_binning_renders_like_the_exact_one(device, speculating):
     """The first call of a shape bins after the host read, exactly; the next ones emit and sort into the guessed
-    capacity (count + 1/8 + 1024, padded) before it, once each, and render bit for bit the same images and
-    gradients."""
+    capacity (count + 1/8 + 1024, padded) before it, once each, and render the same images, bit for bit, and
+    gradients (see :func:`assert_same_render`)."""
     scene = [t.to(device) for t in make_scene(40, 24, 24, 2, dtype=torch.float32, seed=8)]
     exact, count = exact_render(scene, 24, 16)
     assert speculating == [count]

@@ -367,22 +367,22 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
     tile_counts, offsets, flags = ints.split_with_sizes((B * N, B * N, raster_tiles.NUM_FLAGS))
     splats, cameras = _rows_and_cameras(means, B)
     visible = _visible_list(means, B * N)
-    # everything whose size does not depend on the count is allocated before the host read (the projection zeroes
-    # the ranges)
+    # the projection zeroes the ranges
     ranges = tile_counts.new_empty(B * settings.tiles_x * settings.tiles_y, 2, dtype=torch.int32)
     with warp_scope(device) as wdev:
         _prepare_cameras(viewmats, Ks, colors_or_black, cameras, flags, visible, wdev)
         radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, flags,
                          visible, ranges, wdev)  # fmt: skip
         inclusive_scan(tile_counts, offsets)
-        composite = _composite_launch(device, settings.tile_size, len(ranges))
-        color, depth, alpha, state, last = _composite_outputs(B, settings, splats)
         binning = _Binning(splats, radii, ints, tile_counts, offsets, flags, B, settings, len(ranges))
         speculation_shape = (device, B, N, settings.width, settings.height, settings.tile_size)
         count, sorted_ids = _bin_intersections(
             binning, ranges, speculation_shape if device.type in SPECULATIVE_DEVICE_TYPES else None,
             max_intersection_bytes, wdev,
         )  # fmt: skip
+        # allocated while the GPU sorts (before the binning launches they would delay the GPU's next work)
+        composite = _composite_launch(device, settings.tile_size, len(ranges))
+        color, depth, alpha, state, last = _composite_outputs(B, settings, splats)
         common = _composite_args(ranges, sorted_ids, splats, colors_or_black, settings, composite.blocks_per_tile)
         threshold = warp_dtype(dtype)(settings.min_transmittance)
         launch(composite.kernels[0], composite.blocks, [*common, threshold, color, depth, alpha, state, last], wdev,
@@ -826,11 +826,14 @@ def _bin_intersections(binning: _Binning, ranges: torch.Tensor, speculation_shap
     validation flag and RasterMemoryError when the sort buffers would exceed ``max_bytes``.
     """
     launch(raster_tiles.publish_key_layout, 1, [binning.flags, binning.num_tiles], wdev, layout=())
-    read = stage_host_values(binning.ints[2 * binning.splats.shape[0] - 1 :], wdev)
     guess = None if speculation_shape is None else _speculation(speculation_shape, max_bytes)
     if guess is not None:
         keys, values = _sort_buffers(binning.ints, guess.capacity, guess.key_dtype)
         _emit(binning, guess.capacity, keys, values, wdev)
+    # staged after the emit launch: the GPU has that to run while the host stages (the host waits on the copy
+    # only once it has queued the sort)
+    read = stage_host_values(binning.ints[2 * binning.splats.shape[0] - 1 :], wdev)
+    if guess is not None:
         radix_sort_pairs(keys, values, guess.capacity, guess.end_bit)
     count, *flag_values = read.values()
     if validation_enabled():
