@@ -257,21 +257,26 @@ def to_warp(tensor: torch.Tensor, dtype=None):
 
 
 class Grouped(NamedTuple):
-    """A tensor whose trailing ``inner`` dimensions form Warp vectors or matrices (made by :func:`vectors`
-    and :func:`matrices`, consumed by :func:`launch`)."""
+    """A tensor whose trailing ``element_rank`` dimensions (1: vectors, 2: matrices) form Warp vectors or matrices
+    (made by :func:`vectors` and :func:`matrices`, consumed by :func:`launch`)."""
 
     tensor: torch.Tensor
-    inner: tuple[int, ...]
+    element_rank: int
+
+    @property
+    def inner(self) -> tuple[int, ...]:
+        """The element shape: the tensor's trailing ``element_rank`` sizes."""
+        return tuple(self.tensor.shape[-self.element_rank :])
 
 
 def vectors(tensor: torch.Tensor) -> Grouped:
     """``tensor [..., n]`` as a Warp array of n-vectors of its scalar dtype, for :func:`launch`."""
-    return Grouped(tensor, tuple(tensor.shape[-1:]))
+    return Grouped(tensor, 1)
 
 
 def matrices(tensor: torch.Tensor) -> Grouped:
     """``tensor [..., r, c]`` as a Warp array of r x c matrices of its scalar dtype, for :func:`launch`."""
-    return Grouped(tensor, tuple(tensor.shape[-2:]))
+    return Grouped(tensor, 2)
 
 
 _RESOLVED_OVERLOADS: dict[tuple, tuple] = {}
@@ -684,17 +689,17 @@ def check_tensor(
     sizes = tensor.shape
     if len(sizes) != len(shape):
         raise InputError(f"{name} must have shape {_shape_text(shape)}, got {tuple(sizes)}")
-    dims = {} if dims is None else dims
-    for axis, (want, got) in enumerate(zip(shape, sizes)):
-        if want is None:
-            continue
-        if isinstance(want, str):
-            bound = dims.setdefault(want, int(got))
+    if dims is None:
+        dims = {}
+    for axis, want in enumerate(shape):
+        if want.__class__ is str:
+            got = sizes[axis]
+            bound = dims.setdefault(want, got)
             if bound != got:
                 raise InputError(
                     f"{name} has {want}={got} on axis {axis} but another argument has {want}={bound}"
                 )
-        elif want != got:
+        elif want is not None and want != sizes[axis]:
             raise InputError(f"{name} must have shape {_shape_text(shape)}, got {tuple(sizes)}")
     if tensor.dtype not in dtypes:
         allowed = ", ".join(str(d).replace("torch.", "") for d in dtypes)

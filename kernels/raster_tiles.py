@@ -217,13 +217,16 @@ def key_tile(key: Any, depth_bits: int):
 
 @wp.kernel
 def tile_ranges(keys: wp.array(dtype=Any), count: int, depth_bits: int, ranges: wp.array2d(dtype=wp.int32)):
-    """From sorted keys, the half-open range ``[start, end)`` of every flat tile (one thread per intersection).
+    """From sorted keys, the half-open range ``[start, end)`` of every flat tile (one thread per intersection;
+    threads from ``count`` on, as in a launch over a padded buffer, do nothing).
 
     Args:
         keys: sorted uint32 or int64 keys, first ``count`` valid; ``depth_bits``: key bits below the tile index.
         ranges: ``[B * tiles_per_image, 2]`` zero-initialised; tiles without intersections stay (0, 0).
     """
     i = wp.tid()
+    if i >= count:
+        return
     tile = key_tile(keys[i], depth_bits)
     if i == 0:
         ranges[tile, 0] = i

@@ -300,8 +300,14 @@ def _sh_coefficients(colors: torch.Tensor) -> torch.Tensor:
 
 
 def _absent(like: torch.Tensor, *inner: int) -> torch.Tensor:
-    """A zero-length array ``[0, *inner]``: how the kernels are told that an optional input or output is absent."""
-    return like.new_empty(0, *inner)
+    """A zero-length array ``[0, *inner]`` of the dtype and device of ``like``: how the kernels are told that an
+    optional input or output is absent (one shared tensor per kind: it holds no data)."""
+    return _zero_length(like.device, like.dtype, inner)
+
+
+@functools.lru_cache(maxsize=64)
+def _zero_length(device: torch.device, dtype: torch.dtype, inner: tuple[int, ...]) -> torch.Tensor:
+    return torch.empty(0, *inner, dtype=dtype, device=device)
 
 
 CPU_BATCH = 16
@@ -847,7 +853,9 @@ def _bin_intersections(binning: _Binning, ranges: torch.Tensor, speculation_shap
         radix_sort_pairs(keys, values, count, key.bits)
     if speculation_shape is not None:
         _remember(speculation_shape, count, key)
-    launch(raster_tiles.tile_ranges, count, [keys, count, key.depth_bits, ranges], wdev, layout=keys.dtype)
+    # over the sort buffer's length: with a guess, the same launch size call after call (a new size costs host time)
+    launch(raster_tiles.tile_ranges, len(values) // 2 if count else 0, [keys, count, key.depth_bits, ranges], wdev,
+           layout=keys.dtype)  # fmt: skip
     return count, values[:count]
 
 
