@@ -187,19 +187,21 @@ def _warp_stream(wdev, handle: int) -> "wp.Stream":
 
 
 _pinned = threading.local()
-"""This thread's staging for :func:`stage_host_values`: ``buffer``, a pinned int64 buffer; ``events``, one Warp
-event per CUDA device ordinal; ``generation``, how many reads were staged (a read is valid until the next one)."""
+"""This thread's staging for :func:`stage_host_values`: ``buffer``, a pinned int64 tensor, and ``address``, its
+host address; ``events``, one Warp event per CUDA device ordinal; ``generation``, how many reads were staged (a
+read is valid until the next one)."""
 
 
 class HostValues:
     """Values of a small int64 tensor on their way to the host (made by :func:`stage_host_values`): either read
-    already (``ready``, on the CPU) or staged in pinned memory behind a Warp ``event``."""
+    already (``ready``, on the CPU) or ``count`` values at pinned host ``address`` behind a Warp ``event``."""
 
-    __slots__ = ("ready", "staged", "event", "generation")
+    __slots__ = ("ready", "address", "count", "event", "generation")
 
-    def __init__(self, ready: list | None, staged: torch.Tensor | None = None, event=None, generation: int = 0):
+    def __init__(self, ready: list | None, address: int = 0, count: int = 0, event=None, generation: int = 0):
         self.ready = ready
-        self.staged = staged
+        self.address = address
+        self.count = count
         self.event = event
         self.generation = generation
 
@@ -213,34 +215,52 @@ class HostValues:
             return self.ready
         if _pinned.generation != self.generation:
             raise RuntimeError("a later stage_host_values in this thread reused the buffer of this read")
-        wp.synchronize_event(self.event)
-        return self.staged.tolist()
+        warp_context.runtime.core.wp_cuda_event_synchronize(self.event.cuda_event)
+        return list((ctypes.c_int64 * self.count).from_address(self.address))
 
 
-def stage_host_values(tensor: torch.Tensor, wdev) -> HostValues:
-    """Start reading a small contiguous int64 tensor back to the host, as it is once the work queued so far has
-    run; :meth:`HostValues.values` finishes the read.
+def stage_host_values(tensor: torch.Tensor, wdev, start: int = 0, count: int | None = None) -> HostValues:
+    """Start reading ``tensor[start : start + count]`` (all from ``start`` when ``count`` is None) of a contiguous
+    1-D int64 tensor back to the host, as it is once the work queued so far has run (no slice is made);
+    :meth:`HostValues.values` finishes the read.
 
     On CUDA (inside :func:`warp_scope`, whose Warp device ``wdev`` is) the values go through this thread's pinned
-    buffer: one asynchronous copy on torch's current stream, then an event, so that the host can queue more work
-    on the stream before it waits, and waits for the copy alone (torch's ``tolist`` copies to pageable memory and
-    syncs the whole stream: 23 us per read on a lent H100's host). One read per thread at a time: staging the next
-    one invalidates the previous one. On the CPU the values are read at once."""
+    buffer: one asynchronous copy on torch's current stream and an event after it, by Warp's native calls (a
+    torch ``copy_`` and ``tolist`` cost 10 us more per read on a lent H100's host), so that the host can queue more
+    work on the stream before it waits, and then waits for the copy alone (a ``tolist`` of the device tensor syncs
+    the whole stream). One read per thread at a time: staging the next one invalidates the previous one. On the
+    CPU the values are read at once.
+
+    Raises:
+        InputError: not a contiguous 1-D int64 tensor, or the range is not inside it.
+        RuntimeError: the copy could not be queued.
+    """
+    if tensor.dtype != torch.int64 or tensor.dim() != 1 or not tensor.is_contiguous():
+        raise InputError("stage_host_values reads a contiguous 1-D int64 tensor")
+    length = tensor.shape[0]
+    count = length - start if count is None else count
+    if not (0 <= start and 0 <= count and start + count <= length):
+        raise InputError(f"stage_host_values: values [{start}, {start + count}) are not inside a tensor of {length}")
     if not tensor.is_cuda:
-        return HostValues(tensor.tolist())
+        return HostValues(tensor[start : start + count].tolist())
     if not hasattr(_pinned, "events"):
-        _pinned.buffer, _pinned.events, _pinned.generation = None, {}, 0
-    count = tensor.numel()
+        _pinned.buffer, _pinned.address, _pinned.events, _pinned.generation = None, 0, {}, 0
+    core = warp_context.runtime.core
     if _pinned.buffer is None or _pinned.buffer.numel() < count:
+        for event in _pinned.events.values():  # copies still on their way into the old buffer land first
+            core.wp_cuda_event_synchronize(event.cuda_event)
         _pinned.buffer = torch.empty(max(count, 1024), dtype=torch.int64, pin_memory=True)
+        _pinned.address = _pinned.buffer.data_ptr()
     event = _pinned.events.get(wdev.ordinal)
     if event is None:
         event = _pinned.events[wdev.ordinal] = wp.Event(wdev)
-    staged = _pinned.buffer[:count]
-    staged.copy_(tensor, non_blocking=True)
-    wdev.stream.record_event(event)
+    stream = wdev.stream.cuda_stream
+    source = tensor.data_ptr() + 8 * start
+    if count and not core.wp_memcpy_d2h(wdev.context, _pinned.address, source, 8 * count, stream):
+        raise RuntimeError(f"Warp could not queue a device-to-host copy: {warp_context.runtime.get_error_string()}")
+    core.wp_cuda_event_record(event.cuda_event, stream, False)
     _pinned.generation += 1
-    return HostValues(None, staged, event, _pinned.generation)
+    return HostValues(None, _pinned.address, count, event, _pinned.generation)
 
 
 def to_warp(tensor: torch.Tensor, dtype=None):

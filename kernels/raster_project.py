@@ -53,6 +53,9 @@ ROW_WIDTH = 10
 zero quaternions, covariances that overflow (the validation flags; the buffer's other slots, from
 :data:`.raster_tiles.KEY_LAYOUT` on, belong to the sort key, see :mod:`.raster_tiles`)."""
 
+VALIDATION_FLAGS = HUGE_COVARIANCE + 1
+"""Number of validation flag slots (the first ones of the flag buffer)."""
+
 _NO_DEPTH_BITS = wp.constant(wp.int64(NO_DEPTH_BITS))
 
 

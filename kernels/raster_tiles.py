@@ -32,6 +32,10 @@ KEY_LAYOUT = 12
 """First of four int64 flag slots where :func:`publish_key_layout` writes the sort key layout of the call:
 ``depth_base, depth_shift, depth_bits, bits`` (see :func:`sort_key_layout`)."""
 
+HOST_FLAGS = KEY_LAYOUT + 4
+"""The flag slots the host reads after the projection: the validation counters and the key layout (the depth
+range lines after them stay on the device)."""
+
 DEPTH_RANGE = CACHE_LINE_INT64
 """First flag slot of the range of the visible depths' float32 bit patterns (what the sort key packs):
 ``DEPTH_RANGE_LINES`` lines of :func:`~.lanes.warp_fold_range`, folded by the projection."""
@@ -58,7 +62,7 @@ PAD_KEY = wp.constant(wp.int64(2**63 - 1))
 
 
 def depth_bits_range(flag_values: list[int]) -> tuple[int, int]:
-    """``(smallest, largest)`` float32 bit pattern of a visible depth, from the flag values read back
+    """``(smallest, largest)`` float32 bit pattern of a visible depth, from the whole flag buffer's values
     (``(NO_DEPTH_BITS, 0)`` when no row is visible)."""
     lines = range(DEPTH_RANGE, DEPTH_RANGE + DEPTH_RANGE_LINES * CACHE_LINE_INT64, CACHE_LINE_INT64)
     return min(flag_values[k] for k in lines), max(flag_values[k + 1] for k in lines)
@@ -66,7 +70,7 @@ def depth_bits_range(flag_values: list[int]) -> tuple[int, int]:
 
 def key_layout(flag_values: list[int]) -> tuple[int, int, int, int]:
     """``(depth_base, depth_shift, depth_bits, bits)`` of the call's sort key as :func:`publish_key_layout` wrote
-    it, from the flag values read back after it ran."""
+    it, from the flag values (at least the first :data:`HOST_FLAGS`) read back after it ran."""
     return tuple(flag_values[KEY_LAYOUT : KEY_LAYOUT + 4])
 
 DEPTH_COLUMN = 9

@@ -390,18 +390,18 @@ def test_projection_lists_each_visible_row_once(device):
 @pytest.mark.parametrize("device", DEVICES)
 def test_projection_folds_the_visible_depth_range(device, monkeypatch):
     """The smallest and largest float32 bit pattern of a visible row's depth, as the projection folds them over the
-    lines of the flag buffer and the sync reads them (on CUDA from 94 warps spread over the lines; culled rows, here
-    the ones behind the camera, left out)."""
+    lines of the flag buffer (on CUDA from 94 warps spread over the lines; culled rows, here the ones behind the
+    camera, left out); the published key layout starts at the smallest."""
     import codecsplat_warp.ops.raster as raster_ops
 
-    read = raster_tiles.key_layout
-    flag_values = []
+    project = raster_ops._project
+    flags = []
 
-    def spy(values):
-        flag_values.append(values)
-        return read(values)
+    def spy(*args, **kwargs):
+        flags.append(inspect.signature(project).bind(*args, **kwargs).arguments["flags"])
+        return project(*args, **kwargs)
 
-    monkeypatch.setattr(raster_tiles, "key_layout", spy)
+    monkeypatch.setattr(raster_ops, "_project", spy)
     means, quats, scales, opacities, colors, viewmats, Ks = make_scene(3000, 40, 30, dtype=torch.float32, seed=6)
     means[::4, 2] *= -1.0
     inputs = [t.to(device) for t in (means, quats, scales, opacities, colors, viewmats, Ks)]
@@ -413,8 +413,9 @@ def test_projection_folds_the_visible_depth_range(device, monkeypatch):
     depths = saved.splats[visible, 9].float().cpu()
     assert 1000 < len(depths) < 3000
     want = (float32_bits(depths.min().item()), float32_bits(depths.max().item()))
+    flag_values = [f.tolist() for f in flags]
     assert [raster_tiles.depth_bits_range(values) for values in flag_values] == [want]
-    assert read(flag_values[0])[0] == want[0]  # the published layout's depth base
+    assert raster_tiles.key_layout(flag_values[0])[0] == want[0]  # the published layout's depth base
 
 
 def test_too_many_tiles_for_the_sort_key_is_a_typed_error():
@@ -471,7 +472,7 @@ def test_published_sort_key_layout_of_an_empty_depth_range():
 def test_key_layout_slots_follow_the_validation_flags():
     from codecsplat_warp.kernels import raster_project
 
-    assert raster_project.HUGE_COVARIANCE < raster_tiles.KEY_LAYOUT and raster_tiles.KEY_LAYOUT + 4 <= raster_tiles.DEPTH_RANGE
+    assert raster_project.VALIDATION_FLAGS <= raster_tiles.KEY_LAYOUT < raster_tiles.HOST_FLAGS <= raster_tiles.DEPTH_RANGE
 
 
 def scene_at_depths(nearest, farthest, n=40, size=32, seed=4):

@@ -157,10 +157,16 @@ def test_warp_scope_runs_on_torchs_current_stream_and_restores_warps(device):
 @pytest.mark.parametrize("device", DEVICES)
 def test_staged_host_read_waits_for_its_copy_only_and_is_invalidated_by_the_next(device):
     """A read staged before slow work is queued returns the values as they were when it was staged; on CUDA without
-    waiting for the slow work, and a second staged read makes the first one an error (they share a buffer)."""
+    waiting for the slow work, and a second staged read makes the first one an error (they share a buffer). A part
+    of the tensor is read without a slice; a wrong dtype, layout or range is a typed error."""
     device = torch.device(device)
     values = torch.arange(5, dtype=torch.int64, device=device)
     with warp_scope(device) as wdev:
+        assert stage_host_values(values, wdev, 1, 3).values() == [1, 2, 3]
+        assert stage_host_values(values, wdev, 5).values() == []
+        for bad in ((values, wdev, 3, 3), (values.int(), wdev), (values[::2], wdev)):
+            with pytest.raises(InputError):
+                stage_host_values(*bad)
         first = stage_host_values(values, wdev)
         if device.type == "cuda":
             torch.cuda._sleep(200_000_000)  # ~100 ms of GPU time queued after the copy

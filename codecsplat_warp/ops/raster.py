@@ -755,6 +755,8 @@ def _remember(shape: tuple, count: int, key: SortKey) -> None:
 
 
 def _raise_on_flags(flag_values: list[int]) -> None:
+    if not any(flag_values[: raster_project.VALIDATION_FLAGS]):
+        return
     for slot, name in _ARGUMENT_OF_FLAG.items():
         if flag_values[slot]:
             unit = "value(s)" if slot in _CAMERA_FLAGS else "row(s)"
@@ -838,7 +840,7 @@ def _bin_intersections(binning: _Binning, ranges: torch.Tensor, speculation_shap
         _emit(binning, guess.capacity, keys, values, wdev)
     # staged after the emit launch: the GPU has that to run while the host stages (the host waits on the copy
     # only once it has queued the sort)
-    read = stage_host_values(binning.ints[2 * binning.splats.shape[0] - 1 :], wdev)
+    read = stage_host_values(binning.ints, wdev, 2 * binning.splats.shape[0] - 1, 1 + raster_tiles.HOST_FLAGS)
     if guess is not None:
         radix_sort_pairs(keys, values, guess.capacity, guess.end_bit)
     count, *flag_values = read.values()
