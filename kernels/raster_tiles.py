@@ -11,10 +11,10 @@ rows (the sort is stable). The value is the flat index ``camera * N + gaussian``
 row.
 
 The key's layout is computed on the device (:func:`sort_key_layout`), from the range of the visible depths that
-the projection folds into the int64 flag buffer (:data:`DEPTH_RANGE`), by :func:`publish_key_layout`, which
-writes it into the flag buffer (:data:`KEY_LAYOUT`) for :func:`emit_intersections` and for the host. So the keys
-can be emitted, and sorted, before the host has read the intersection count: into buffers of a guessed capacity,
-which the host checks afterwards (see ``codecsplat_warp.ops.raster``). The int64 flag buffer's slots from :data:`KEY_LAYOUT`
+the projection folds into the int64 flag buffer (:data:`DEPTH_RANGE`), by every thread of
+:func:`emit_intersections`, whose first thread also writes it into the flag buffer (:data:`KEY_LAYOUT`) for the
+host. So the keys can be emitted, and sorted, before the host has read the intersection count: into buffers of
+a guessed capacity, which the host checks afterwards (see ``codecsplat_warp.ops.raster``). The int64 flag buffer's slots from :data:`KEY_LAYOUT`
 on are defined here; the projection's validation counters take the slots below it.
 """
 
@@ -29,7 +29,7 @@ from .lanes import CACHE_LINE_INT64
 wp.set_module_options({"enable_backward": False})
 
 KEY_LAYOUT = 12
-"""First of four int64 flag slots where :func:`publish_key_layout` writes the sort key layout of the call:
+"""First of four int64 flag slots where :func:`emit_intersections` publishes the sort key layout of the call:
 ``depth_base, depth_shift, depth_bits, bits`` (see :func:`sort_key_layout`)."""
 
 HOST_FLAGS = KEY_LAYOUT + 4
@@ -69,8 +69,8 @@ def depth_bits_range(flag_values: list[int]) -> tuple[int, int]:
 
 
 def key_layout(flag_values: list[int]) -> tuple[int, int, int, int]:
-    """``(depth_base, depth_shift, depth_bits, bits)`` of the call's sort key as :func:`publish_key_layout` wrote
-    it, from the flag values (at least the first :data:`HOST_FLAGS`) read back after it ran."""
+    """``(depth_base, depth_shift, depth_bits, bits)`` of the call's sort key as :func:`emit_intersections`
+    published it, from the flag values (at least the first :data:`HOST_FLAGS`) read back after it ran."""
     return tuple(flag_values[KEY_LAYOUT : KEY_LAYOUT + 4])
 
 DEPTH_COLUMN = 9
@@ -134,7 +134,8 @@ def sort_key_layout(flags: wp.array(dtype=wp.int64), num_tiles: int):
     """
     low = flags[DEPTH_RANGE]
     high = flags[DEPTH_RANGE + 1]
-    for line in range(1, DEPTH_RANGE_LINES):
+    lines = (flags.shape[0] - DEPTH_RANGE) // CACHE_LINE_INT64  # DEPTH_RANGE_LINES, known at run time: not unrolled
+    for line in range(1, lines):
         low = wp.min(low, flags[DEPTH_RANGE + line * CACHE_LINE_INT64])
         high = wp.max(high, flags[DEPTH_RANGE + line * CACHE_LINE_INT64 + 1])
     tile_bits = bit_length(wp.int64(num_tiles - 1))
@@ -143,20 +144,6 @@ def sort_key_layout(flags: wp.array(dtype=wp.int64), num_tiles: int):
     if shift > MAX_DEPTH_SHIFT:
         shift = 0
     return wp.vec4i(int(low), shift, span_bits - shift, tile_bits + span_bits - shift)
-
-
-@wp.kernel
-def publish_key_layout(flags: wp.array(dtype=wp.int64), num_tiles: int):
-    """Write the call's :func:`sort_key_layout` into ``flags`` at :data:`KEY_LAYOUT` (``dim = 1``), for
-    :func:`emit_intersections` and for the host.
-
-    Args:
-        flags: the int64 flag buffer holding the visible depth range as the projection folded it.
-        num_tiles: flat tiles ``B * tiles_x * tiles_y`` (below 2^31).
-    """
-    layout = sort_key_layout(flags, num_tiles)
-    for j in range(4):
-        flags[KEY_LAYOUT + j] = wp.int64(layout[j])
 
 
 @wp.kernel
@@ -170,23 +157,27 @@ def emit_intersections(
     tile_size: int,
     tiles_x: int,
     tiles_y: int,
+    num_tiles: int,
     capacity: int,
     keys: wp.array(dtype=Any),
     values: wp.array(dtype=wp.int32),
 ):
     """Write the keys and values of every intersection of one projected Gaussian (one thread per row), the first
-    ``capacity`` of them, and pad the buffers from the intersection count up to ``capacity``.
+    ``capacity`` of them, and pad the buffers from the intersection count up to ``capacity``; thread 0 also
+    publishes the call's :func:`sort_key_layout` in ``flags`` at :data:`KEY_LAYOUT` (for the host).
 
     With ``capacity`` >= the count every intersection is written and the rest of the capacity holds
     :data:`PAD_KEY`, so a sort of ``capacity`` pairs orders the intersections as a sort of exactly the count would;
-    with ``capacity`` < the count the buffers are incomplete (the host discards them).
+    with ``capacity`` < the count the buffers are incomplete (the host discards them). Launched with ``dim = 1``
+    and ``capacity = 0`` it only publishes the layout.
 
     Args:
         splats: projected rows ``[B*N, 10]`` (x, y, conic..., depth in column 9).
         radii: pixel radii ``[B*N]``; zero means culled.
         counts: int64 intersections per row ``[B*N]``; ``inclusive_offsets`` their inclusive prefix sum.
-        flags: the int64 flag buffer with the key layout that :func:`publish_key_layout` wrote.
-        capacity: intersections the buffers take (below 2^31).
+        flags: the int64 flag buffer with the visible depth range as the projection folded it.
+        num_tiles: flat tiles ``B * tiles_x * tiles_y`` (below 2^31); capacity: intersections the buffers take
+            (below 2^31).
         keys: uint32 (a layout of ``bits <= 32``) or int64 output, values: int32 output (row indices; 0 for
             padding), each at least ``capacity`` long.
     """
@@ -196,12 +187,18 @@ def emit_intersections(
         keys[p] = keys.dtype(PAD_KEY)
         values[p] = 0
     count = counts[i]
-    if count == wp.int64(0):
+    if count == wp.int64(0) and i != 0:
         return
+    layout = sort_key_layout(flags, num_tiles)
+    if i == 0:
+        for j in range(4):
+            flags[KEY_LAYOUT + j] = wp.int64(layout[j])
+        if count == wp.int64(0):
+            return
     first_tile = (i // num_gaussians) * tiles_x * tiles_y
     rect = tile_rect(splats[i, 0], splats[i, 1], radii[i], tile_size, tiles_x, tiles_y)
-    low = depth_key(splats[i, DEPTH_COLUMN], int(flags[KEY_LAYOUT]), int(flags[KEY_LAYOUT + 1]))
-    depth_key_bits = wp.int64(flags[KEY_LAYOUT + 2])
+    low = depth_key(splats[i, DEPTH_COLUMN], layout[0], layout[1])
+    depth_key_bits = wp.int64(layout[2])
     k = int(inclusive_offsets[i] - count)
     for ty in range(rect[1], rect[3]):
         for tx in range(rect[0], rect[2]):

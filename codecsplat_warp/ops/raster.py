@@ -800,11 +800,12 @@ def _sort_buffers(like: torch.Tensor, capacity: int, key_dtype: torch.dtype) -> 
 
 
 def _emit(binning: _Binning, capacity: int, keys: torch.Tensor, values: torch.Tensor, wdev) -> None:
-    """Launch :func:`~codecsplat_warp.kernels.raster_tiles.emit_intersections` over every row."""
+    """Launch :func:`~codecsplat_warp.kernels.raster_tiles.emit_intersections` over every row, or with ``capacity``
+    0 on one thread (which publishes the key layout and writes nothing)."""
     splats, settings = binning.splats, binning.settings
     launch(
         raster_tiles.emit_intersections,
-        splats.shape[0],
+        splats.shape[0] if capacity else 1,
         [
             splats,
             vectors(binning.radii),
@@ -815,6 +816,7 @@ def _emit(binning: _Binning, capacity: int, keys: torch.Tensor, values: torch.Te
             settings.tile_size,
             settings.tiles_x,
             settings.tiles_y,
+            binning.num_tiles,
             capacity,
             keys,
             values,
@@ -829,17 +831,20 @@ def _bin_intersections(binning: _Binning, ranges: torch.Tensor, speculation_shap
     """Emit, sort and range the intersections: return their count and the sorted row ids ``[count]`` (int32) of
     the projected rows; fill the per-tile ranges ``[B*tiles, 2]`` (int32, zeroed by the projection).
 
-    The call's one host read happens here: the count (the last offset), the flags and the key layout.
+    The call's one host read happens here: the count (the last offset), the validation flags and the key layout
+    the emit kernel publishes.
     ``speculation_shape`` names the call's shape for a :class:`_Speculation` (None: none). Raises InputError on a
     validation flag and RasterMemoryError when the sort buffers would exceed ``max_bytes``.
     """
-    launch(raster_tiles.publish_key_layout, 1, [binning.flags, binning.num_tiles], wdev, layout=())
     guess = None if speculation_shape is None else _speculation(speculation_shape, max_bytes)
-    if guess is not None:
+    if guess is None:  # publish the key layout only: the host sizes the buffers after the read
+        keys, values = _sort_buffers(binning.ints, 0, torch.uint32)
+        _emit(binning, 0, keys, values, wdev)
+    else:
         keys, values = _sort_buffers(binning.ints, guess.capacity, guess.key_dtype)
         _emit(binning, guess.capacity, keys, values, wdev)
-    # staged after the emit launch: the GPU has that to run while the host stages (the host waits on the copy
-    # only once it has queued the sort)
+    # staged after the emit launch, which publishes the key layout (the host waits on the copy only once it has
+    # queued the sort)
     read = stage_host_values(binning.ints, wdev, 2 * binning.splats.shape[0] - 1, 1 + raster_tiles.HOST_FLAGS)
     if guess is not None:
         radix_sort_pairs(keys, values, guess.capacity, guess.end_bit)
