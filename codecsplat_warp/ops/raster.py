@@ -30,6 +30,7 @@ from __future__ import annotations
 import functools
 import math
 import numbers
+import threading
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -732,6 +733,7 @@ SPECULATION_MIN_SLACK = 1024
 _MAX_SPECULATIONS = 64
 _speculations: dict[tuple, _Speculation] = {}
 """The guess for each call shape ``(device, B, N, width, height, tile_size)``; the least recent goes first."""
+_speculations_lock = threading.Lock()
 
 
 def _speculation(shape: tuple, max_bytes: int) -> _Speculation | None:
@@ -745,13 +747,15 @@ def _speculation(shape: tuple, max_bytes: int) -> _Speculation | None:
 
 
 def _remember(shape: tuple, count: int, key: SortKey) -> None:
-    """Keep the guess for the next call of ``shape`` after one with ``count`` intersections of ``key``."""
-    _speculations.pop(shape, None)
-    if len(_speculations) >= _MAX_SPECULATIONS:
-        del _speculations[next(iter(_speculations))]
+    """Keep the guess for the next call of ``shape`` after one with ``count`` intersections of ``key`` (calls in
+    several threads may share the store)."""
     capacity = min(count + int(count * SPECULATION_SLACK) + SPECULATION_MIN_SLACK, 2**31 - 1)
     end_bit = min(-(-key.bits // 8) * 8, 8 * key.dtype.itemsize)
-    _speculations[shape] = _Speculation(capacity, key.dtype, end_bit)
+    with _speculations_lock:
+        _speculations.pop(shape, None)
+        if len(_speculations) >= _MAX_SPECULATIONS:
+            del _speculations[next(iter(_speculations))]
+        _speculations[shape] = _Speculation(capacity, key.dtype, end_bit)
 
 
 def _raise_on_flags(flag_values: list[int]) -> None:
@@ -832,17 +836,13 @@ def _bin_intersections(binning: _Binning, ranges: torch.Tensor, speculation_shap
     the projected rows; fill the per-tile ranges ``[B*tiles, 2]`` (int32, zeroed by the projection).
 
     The call's one host read happens here: the count (the last offset), the validation flags and the key layout
-    the emit kernel publishes.
-    ``speculation_shape`` names the call's shape for a :class:`_Speculation` (None: none). Raises InputError on a
+    the emit kernel publishes. ``speculation_shape`` names the call's shape for a :class:`_Speculation` (None: none). Raises InputError on a
     validation flag and RasterMemoryError when the sort buffers would exceed ``max_bytes``.
     """
     guess = None if speculation_shape is None else _speculation(speculation_shape, max_bytes)
-    if guess is None:  # publish the key layout only: the host sizes the buffers after the read
-        keys, values = _sort_buffers(binning.ints, 0, torch.uint32)
-        _emit(binning, 0, keys, values, wdev)
-    else:
-        keys, values = _sort_buffers(binning.ints, guess.capacity, guess.key_dtype)
-        _emit(binning, guess.capacity, keys, values, wdev)
+    capacity = 0 if guess is None else guess.capacity  # 0: the emit only publishes the key layout
+    keys, values = _sort_buffers(binning.ints, capacity, torch.uint32 if guess is None else guess.key_dtype)
+    _emit(binning, capacity, keys, values, wdev)
     # staged after the emit launch, which publishes the key layout (the host waits on the copy only once it has
     # queued the sort)
     read = stage_host_values(binning.ints, wdev, 2 * binning.splats.shape[0] - 1, 1 + raster_tiles.HOST_FLAGS)
