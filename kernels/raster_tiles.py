@@ -217,23 +217,38 @@ def key_tile(key: Any, depth_bits: int):
 
 
 @wp.kernel
-def tile_ranges(keys: wp.array(dtype=Any), count: int, depth_bits: int, ranges: wp.array2d(dtype=wp.int32)):
-    """From sorted keys, the half-open range ``[start, end)`` of every flat tile (one thread per intersection;
-    threads from ``count`` on, as in a launch over a padded buffer, do nothing).
+def tile_ranges(
+    keys: wp.array(dtype=Any),
+    inclusive_offsets: wp.array(dtype=wp.int64),
+    flags: wp.array(dtype=wp.int64),
+    length: int,
+    ranges: wp.array2d(dtype=wp.int32),
+):
+    """From sorted keys, the half-open range ``[start, end)`` of every flat tile (one thread per key).
+
+    The intersection count (the last inclusive offset) and the key's depth bits (the layout that
+    :func:`emit_intersections` published in ``flags``) are read here, so the host need not know them: the first
+    ``min(count, length)`` keys are used, threads from there on do nothing. Keys of a guess the host later finds
+    unusable (too short a buffer, a wrong key dtype, too few sorted bits) give wrong ranges, but only for tiles of
+    the grid and inside ``[0, length]``.
 
     Args:
-        keys: sorted uint32 or int64 keys, first ``count`` valid; ``depth_bits``: key bits below the tile index.
+        keys: sorted uint32 or int64 keys; length: how many of them were sorted (the launch size).
         ranges: ``[B * tiles_per_image, 2]`` zero-initialised; tiles without intersections stay (0, 0).
     """
     i = wp.tid()
-    if i >= count:
+    used = wp.min(int(inclusive_offsets[inclusive_offsets.shape[0] - 1]), length)
+    if i >= used:
         return
-    tile = key_tile(keys[i], depth_bits)
+    shift = int(flags[KEY_LAYOUT + 2])
+    tile = key_tile(keys[i], shift)
+    if tile < 0 or tile >= ranges.shape[0]:
+        return
     if i == 0:
         ranges[tile, 0] = i
-    elif key_tile(keys[i - 1], depth_bits) != tile:
+    elif key_tile(keys[i - 1], shift) != tile:
         ranges[tile, 0] = i
-    if i == count - 1:
+    if i == used - 1:
         ranges[tile, 1] = i + 1
-    elif key_tile(keys[i + 1], depth_bits) != tile:
+    elif key_tile(keys[i + 1], shift) != tile:
         ranges[tile, 1] = i + 1

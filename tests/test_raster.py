@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import inspect
 import math
+import pathlib
 import struct
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -600,9 +603,9 @@ def exact_render(scene, size, tile_size):
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_speculative_binning_renders_like_the_exact_one(device, speculating):
-    """The first call of a shape bins after the host read, exactly; the next ones emit and sort into the guessed
-    capacity (count + 1/8 + 1024, padded) before it, once each, and render the same images, bit for bit, and
-    gradients (see :func:`assert_same_render`)."""
+    """The first call of a shape bins after the host read, exactly; the next ones emit, sort and composite into the
+    guessed capacity (count + 1/8 + 1024, padded) before it, once each, and render the same images, bit for bit,
+    and gradients (see :func:`assert_same_render`)."""
     scene = [t.to(device) for t in make_scene(40, 24, 24, 2, dtype=torch.float32, seed=8)]
     exact, count = exact_render(scene, 24, 16)
     assert speculating == [0, count]  # the one-thread launch that publishes the key layout, then the exact emit
@@ -626,8 +629,8 @@ def scene_with_more_intersections(scene, factor):
     ],
 )
 def test_a_wrong_guess_bins_again_exactly(device, first, second, tile_size, wrong, speculating):
-    """A call whose guess from the call before does not hold its intersections emits and sorts them again into
-    exact buffers, and renders as without speculation."""
+    """A call whose guess from the call before does not hold its intersections emits, sorts and composites them
+    again into exact buffers (over the first compositing's outputs), and renders as without speculation."""
     import codecsplat_warp.ops.raster as raster_ops
 
     def scene_for(kind):
@@ -675,3 +678,32 @@ def test_speculations_round_the_sort_bits_and_forget_the_oldest_shape(speculatin
     raster_ops._remember(0, 1, SortKey(0, 0, 0, 8))  # 0 becomes the most recent: 1 goes next
     raster_ops._remember("new", 1, SortKey(0, 0, 0, 8))
     assert 0 in raster_ops._speculations and 1 not in raster_ops._speculations
+
+
+_DEBUG_SPECULATION_SCRIPT = """
+import sys
+import warp as wp
+wp.config.mode = "debug"  # every array access bounds-checked: an out-of-bounds one aborts the process
+import codecsplat_warp.ops.raster as raster_ops
+from codecsplat_warp.ops.raster import rasterize
+sys.path.insert(0, sys.argv[1])
+from test_raster import make_scene, scene_at_depths, scene_with_more_intersections
+raster_ops.SPECULATIVE_DEVICE_TYPES = ("cpu",)
+for first, second, tile_size in [((2.0, 2.9), (1.0, 9.0), 1), ((2.0, 2.01), (2.0, 7.0), 16)]:
+    for scene in (scene_at_depths(*first), scene_at_depths(*second), scene_at_depths(*second)):
+        rasterize(*scene, 32, 32, tile_size=tile_size)
+base = make_scene(40, 32, 32, seed=9)
+for factor in (1.0, 2.0, 2.0):
+    rasterize(*scene_with_more_intersections(base, factor), 32, 32, tile_size=1)
+print("in bounds")
+"""
+
+
+def test_speculative_binning_stays_in_bounds_in_warp_debug_mode():
+    """Hits and every kind of wrong guess (a too short buffer, a 32-bit key where a 64-bit one is needed, too few
+    sorted bits) run with Warp's bounds checks on (in a subprocess: a failed check aborts the process). The emit
+    writes no further than the guessed capacity, tile_ranges and the compositing read only inside it."""
+    tests = pathlib.Path(__file__).resolve().parent
+    result = subprocess.run([sys.executable, "-c", _DEBUG_SPECULATION_SCRIPT, str(tests)], capture_output=True,
+                            text=True, timeout=600, cwd=tests.parent)  # fmt: skip
+    assert result.returncode == 0 and "in bounds" in result.stdout, result.stderr[-2000:]

@@ -9,14 +9,16 @@ Function (or, when nothing needs a gradient, called without one) so that a call 
 2. EWA projection, one thread per (camera, Gaussian): a packed row ``[x, y, conic(3), opacity, rgb, depth]``,
    pixel radii, tiles touched and input-validation flags.
 3. Prefix sum of the tile counts; ONE host read of the intersection count and the flags (adjacent in one
-   int64 buffer), then the memory budget is checked before anything of the count's size is allocated.
+   int64 buffer), then the memory budget is checked before buffers of the count's size are allocated (the guessed
+   buffers of step 4 are cut to the budget).
 4. One key ``[camera | tile | depth]`` per intersection, 32 bits when the call's depth range allows, else 64 (the
    layout is computed on the device, see :mod:`codecsplat_warp.kernels.raster_tiles`); Warp's radix sort
    (:func:`~codecsplat_warp.device.radix_sort_pairs`) on the used bits only, per-tile ranges from the sorted keys.
-   On CUDA, a call with the shape of an earlier one emits and sorts its keys *before* the host read, into buffers
-   of a capacity guessed from that call (:class:`_Speculation`), so that the GPU does not wait for the host
-   around the read; when the read shows the guess too small (or the key too wide), the keys are emitted and
-   sorted again into buffers of the exact size. Either way the sorted order, and so the render, is the same.
+   On CUDA, a call with the shape of an earlier one emits, sorts and composites *before* the host read, into
+   buffers of a capacity guessed from that call (:class:`_Speculation`), so that neither the GPU nor the host waits
+   for the other around the read; when the read shows the guess too small (or the key too wide), the keys are
+   emitted, sorted and composited again into buffers of the exact size. Either way the sorted order, and so the
+   render, is the same.
 5. Front-to-back compositing per tile (rows staged in shared memory; expected depth normalised in the
    kernel), and a hand-written back-to-front backward. Projection gradients come from an adjoint launch of
    its straight-line twin kernel.
@@ -382,18 +384,13 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
                          visible, ranges, wdev)  # fmt: skip
         inclusive_scan(tile_counts, offsets)
         binning = _Binning(splats, radii, ints, tile_counts, offsets, flags, B, settings, len(ranges))
-        speculation_shape = (device, B, N, settings.width, settings.height, settings.tile_size)
-        count, sorted_ids = _bin_intersections(
-            binning, ranges, speculation_shape if device.type in SPECULATIVE_DEVICE_TYPES else None,
+        composite = _composite_launch(device, settings.tile_size, len(ranges))
+        shape = (device, B, N, settings.width, settings.height, settings.tile_size)
+        count, sorted_ids, outputs = _bin_and_composite(
+            binning, ranges, colors_or_black, composite, shape if device.type in SPECULATIVE_DEVICE_TYPES else None,
             max_intersection_bytes, wdev,
         )  # fmt: skip
-        # allocated while the GPU sorts (before the binning launches they would delay the GPU's next work)
-        composite = _composite_launch(device, settings.tile_size, len(ranges))
-        color, depth, alpha, state, last = _composite_outputs(B, settings, splats)
-        common = _composite_args(ranges, sorted_ids, splats, colors_or_black, settings, composite.blocks_per_tile)
-        threshold = warp_dtype(dtype)(settings.min_transmittance)
-        launch(composite.kernels[0], composite.blocks, [*common, threshold, color, depth, alpha, state, last], wdev,
-               block_dim=composite.block_dim, layout=dtype)  # fmt: skip
+    color, depth, alpha, state, last = outputs
     H, W = settings.height, settings.width
     depth = depth.view(B, H, W, 1) if settings.render_depth else None
     outputs = (color.view(B, H, W, 3), depth, alpha.view(B, H, W, 1), radii.view(B, N, 2), count)
@@ -830,40 +827,83 @@ def _emit(binning: _Binning, capacity: int, keys: torch.Tensor, values: torch.Te
     )
 
 
-def _bin_intersections(binning: _Binning, ranges: torch.Tensor, speculation_shape: tuple | None, max_bytes: int,
-                       wdev) -> tuple[int, torch.Tensor]:  # fmt: skip
-    """Emit, sort and range the intersections: return their count and the sorted row ids ``[count]`` (int32) of
-    the projected rows; fill the per-tile ranges ``[B*tiles, 2]`` (int32, zeroed by the projection).
+def _bin_and_composite(binning: _Binning, ranges: torch.Tensor, colors_or_black: torch.Tensor,
+                       composite: _CompositeLaunch, speculation_shape: tuple | None, max_bytes: int,
+                       wdev) -> tuple[int, torch.Tensor, tuple]:  # fmt: skip
+    """Bin the projected rows into tiles and composite them: ``(intersection count, sorted row ids [count] int32,
+    the outputs of :func:`_composite_outputs`)``; fills the tile ranges ``[B*tiles, 2]`` (zeroed by the
+    projection). The call's one host read (count, validation flags, key layout) happens here.
 
-    The call's one host read happens here: the count (the last offset), the validation flags and the key layout
-    the emit kernel publishes. ``speculation_shape`` names the call's shape for a :class:`_Speculation` (None: none). Raises InputError on a
-    validation flag and RasterMemoryError when the sort buffers would exceed ``max_bytes``.
+    Without a guess for ``speculation_shape`` (None: no speculation) the host reads first, then bins exactly. With
+    one, it bins into the guessed capacity and queues the compositing before it reads; when the read shows the
+    guess unusable (:meth:`_Speculation.covers`), it bins exactly and composites again into the same outputs.
+    Raises InputError on a validation flag and RasterMemoryError when the sort buffers would exceed ``max_bytes``.
     """
+    splats, settings = binning.splats, binning.settings
     guess = None if speculation_shape is None else _speculation(speculation_shape, max_bytes)
-    capacity = 0 if guess is None else guess.capacity  # 0: the emit only publishes the key layout
-    keys, values = _sort_buffers(binning.ints, capacity, torch.uint32 if guess is None else guess.key_dtype)
-    _emit(binning, capacity, keys, values, wdev)
-    # staged after the emit launch, which publishes the key layout (the host waits on the copy only once it has
-    # queued the sort)
-    read = stage_host_values(binning.ints, wdev, 2 * binning.splats.shape[0] - 1, 1 + raster_tiles.HOST_FLAGS)
+    outputs = None
     if guess is not None:
-        radix_sort_pairs(keys, values, guess.capacity, guess.end_bit)
+        sorted_ids, read = _bin(binning, guess.capacity, guess.key_dtype, guess.end_bit, ranges, wdev, stage=True)
+        outputs = _composite_outputs(binning.num_cameras, settings, splats)
+        _composite_forward(ranges, splats, colors_or_black, settings, composite, sorted_ids, outputs, wdev)
+    else:
+        _emit(binning, 0, *_sort_buffers(binning.ints, 0, torch.uint32), wdev)  # only publishes the key layout
+        read = stage_host_values(binning.ints, wdev, *_read_span(binning))
+    count, key = _read_binning(read, max_bytes)
+    if guess is not None and guess.covers(count, key):
+        sorted_ids = sorted_ids[:count]
+    else:
+        if guess is not None:
+            sorted_ids = None  # the failed guess's buffers go before the exact ones are allocated
+            ranges.zero_()
+        sorted_ids = _bin(binning, count, key.dtype, key.bits, ranges, wdev)[0]
+        outputs = outputs or _composite_outputs(binning.num_cameras, settings, splats)
+        _composite_forward(ranges, splats, colors_or_black, settings, composite, sorted_ids, outputs, wdev)
+    if speculation_shape is not None:
+        _remember(speculation_shape, count, key)
+    return count, sorted_ids, outputs
+
+
+def _read_span(binning: _Binning) -> tuple[int, int]:
+    """Where in ``binning.ints`` the host read starts and how many values it takes: the last inclusive offset (the
+    intersection count), then the first :data:`~codecsplat_warp.kernels.raster_tiles.HOST_FLAGS` flags."""
+    return 2 * binning.splats.shape[0] - 1, 1 + raster_tiles.HOST_FLAGS
+
+
+def _read_binning(read, max_bytes: int) -> tuple[int, SortKey]:
+    """Finish the call's one host read (staged over :func:`_read_span`): the intersection count and the sort key
+    the emit kernel published. Raises InputError on a validation flag and RasterMemoryError when the sort buffers
+    would exceed ``max_bytes``."""
     count, *flag_values = read.values()
     if validation_enabled():
         _raise_on_flags(flag_values)
     key = SortKey(*raster_tiles.key_layout(flag_values))
     _check_budget(count, key, max_bytes)
-    if guess is None or not guess.covers(count, key):
-        keys = values = None  # a wrong guess's buffers go before the exact ones are allocated
-        keys, values = _sort_buffers(binning.ints, count, key.dtype)
-        _emit(binning, count, keys, values, wdev)
-        radix_sort_pairs(keys, values, count, key.bits)
-    if speculation_shape is not None:
-        _remember(speculation_shape, count, key)
-    # over the sort buffer's length: with a guess, the same launch size call after call (a new size costs host time)
-    launch(raster_tiles.tile_ranges, len(values) // 2 if count else 0, [keys, count, key.depth_bits, ranges], wdev,
-           layout=keys.dtype)  # fmt: skip
-    return count, values[:count]
+    return count, key
+
+
+def _bin(binning: _Binning, capacity: int, key_dtype: torch.dtype, end_bit: int, ranges: torch.Tensor, wdev,
+         stage: bool = False) -> tuple[torch.Tensor, object]:  # fmt: skip
+    """Emit up to ``capacity`` intersections with keys of ``key_dtype``, sort them by key bits ``[0, end_bit)`` and
+    fill the per-tile ranges ``[B*tiles, 2]`` (int32, zero on entry). Returns the sorted row ids ``[capacity]``
+    (int32; from the count on, padding) and, with ``stage``, the host read staged after the emit launch (which
+    publishes the key layout), else None."""
+    keys, values = _sort_buffers(binning.ints, capacity, key_dtype)
+    _emit(binning, capacity, keys, values, wdev)
+    read = stage_host_values(binning.ints, wdev, *_read_span(binning)) if stage else None
+    radix_sort_pairs(keys, values, capacity, end_bit)
+    launch(raster_tiles.tile_ranges, capacity, [keys, binning.offsets, binning.flags, capacity, ranges], wdev,
+           layout=key_dtype)  # fmt: skip
+    return values[:capacity], read
+
+
+def _composite_forward(ranges, splats, colors_or_black, settings: _Settings, composite: _CompositeLaunch,
+                       sorted_ids: torch.Tensor, outputs: tuple, wdev) -> None:  # fmt: skip
+    """Launch the forward compositing kernel into ``outputs`` (see :func:`_composite_outputs`)."""
+    common = _composite_args(ranges, sorted_ids, splats, colors_or_black, settings, composite.blocks_per_tile)
+    threshold = warp_dtype(splats.dtype)(settings.min_transmittance)
+    launch(composite.kernels[0], composite.blocks, [*common, threshold, *outputs], wdev,
+           block_dim=composite.block_dim, layout=splats.dtype)  # fmt: skip
 
 
 def _empty_render(means, viewmats, background, settings: _Settings):
