@@ -13,9 +13,10 @@ row.
 The key's layout is computed on the device (:func:`sort_key_layout`), from the range of the visible depths that
 the projection folds into the int64 flag buffer (:data:`DEPTH_RANGE`), by every thread of
 :func:`emit_intersections`, whose first thread also writes it into the flag buffer (:data:`KEY_LAYOUT`) for the
-host. So the keys can be emitted, and sorted, before the host has read the intersection count: into buffers of
-a guessed capacity, which the host checks afterwards (see ``codecsplat_warp.ops.raster``). The int64 flag buffer's slots from :data:`KEY_LAYOUT`
-on are defined here; the projection's validation counters take the slots below it.
+host. So the keys can be emitted, sorted and ranged before the host has read the intersection count: into
+buffers of a guessed capacity, which the host checks afterwards (see ``codecsplat_warp.ops.raster``). The int64
+flag buffer's slots from :data:`KEY_LAYOUT` on are defined here; the projection's validation counters take the
+slots below it.
 """
 
 from __future__ import annotations
@@ -59,13 +60,6 @@ the size of the rounding error of the float32 depth ``z = r . x + t`` itself (th
 PAD_KEY = wp.constant(wp.int64(2**63 - 1))
 """Key of the padding after the last intersection of a buffer longer than the count: every bit below bit 63 set
 (as a uint32: every bit), so padding sorts after every intersection (after equal keys too: the sort is stable)."""
-
-
-def depth_bits_range(flag_values: list[int]) -> tuple[int, int]:
-    """``(smallest, largest)`` float32 bit pattern of a visible depth, from the whole flag buffer's values
-    (``(NO_DEPTH_BITS, 0)`` when no row is visible)."""
-    lines = range(DEPTH_RANGE, DEPTH_RANGE + DEPTH_RANGE_LINES * CACHE_LINE_INT64, CACHE_LINE_INT64)
-    return min(flag_values[k] for k in lines), max(flag_values[k + 1] for k in lines)
 
 
 def key_layout(flag_values: list[int]) -> tuple[int, int, int, int]:

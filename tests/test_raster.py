@@ -417,8 +417,18 @@ def test_projection_folds_the_visible_depth_range(device, monkeypatch):
     assert 1000 < len(depths) < 3000
     want = (float32_bits(depths.min().item()), float32_bits(depths.max().item()))
     flag_values = [f.tolist() for f in flags]
-    assert [raster_tiles.depth_bits_range(values) for values in flag_values] == [want]
+    assert [folded_depth_range(values) for values in flag_values] == [want]
     assert raster_tiles.key_layout(flag_values[0])[0] == want[0]  # the published layout's depth base
+
+
+def folded_depth_range(flag_values: list[int]) -> tuple[int, int]:
+    """``(smallest, largest)`` float32 bit pattern of a visible depth over the depth-range lines of a whole flag
+    buffer's values."""
+    from codecsplat_warp.kernels.lanes import CACHE_LINE_INT64
+
+    first = raster_tiles.DEPTH_RANGE
+    lines = range(first, first + raster_tiles.DEPTH_RANGE_LINES * CACHE_LINE_INT64, CACHE_LINE_INT64)
+    return min(flag_values[k] for k in lines), max(flag_values[k + 1] for k in lines)
 
 
 def test_too_many_tiles_for_the_sort_key_is_a_typed_error():
@@ -435,6 +445,7 @@ def float32_bits(value: float) -> int:
 def published_key_layout(num_tiles: int, nearest_bits: int, farthest_bits: int, device: str) -> SortKey:
     """The sort key that the emit kernel's one-thread launch publishes for a depth range folded into two different
     lines of a flag buffer (the other lines empty), as the projection leaves it."""
+    import codecsplat_warp.ops.raster as raster_ops
     from codecsplat_warp.device import warp_scope
     from codecsplat_warp.kernels.lanes import CACHE_LINE_INT64
 
@@ -442,13 +453,14 @@ def published_key_layout(num_tiles: int, nearest_bits: int, farthest_bits: int, 
     lines = raster_tiles.DEPTH_RANGE + CACHE_LINE_INT64 * torch.arange(raster_tiles.DEPTH_RANGE_LINES)
     flags[lines] = NO_DEPTH_BITS
     flags[lines[3]], flags[lines[7] + 1] = nearest_bits, farthest_bits
-    import codecsplat_warp.ops.raster as raster_ops
-
     ints = torch.cat([torch.zeros(2, dtype=torch.int64), flags]).to(device)
-    settings = raster_ops._make_settings(torch.zeros(1, 3), 16, 16, 0.01, 100.0, "classic", None, True, 16, 1e-4)
+    # one camera, one row of num_tiles 16-pixel tiles
+    settings = raster_ops._make_settings(torch.zeros(1, 3), 16 * num_tiles, 16, 0.01, 100.0, "classic", None, True,
+                                         16, 1e-4)  # fmt: skip
     radii = torch.zeros(1, 2, dtype=torch.int32, device=device)
     binning = raster_ops._Binning(torch.zeros(1, 10, device=device), radii, ints, ints[:1], ints[1:2], ints[2:], 1,
-                                  settings, num_tiles)  # fmt: skip
+                                  settings)  # fmt: skip
+    assert binning.num_tiles == num_tiles
     with warp_scope(torch.device(device)) as wdev:
         raster_ops._emit(binning, 0, *raster_ops._sort_buffers(ints, 0, torch.uint32), wdev)
     return SortKey(*raster_tiles.key_layout(ints[2:].tolist()))
@@ -647,8 +659,12 @@ def test_a_wrong_guess_bins_again_exactly(device, first, second, tile_size, wron
     assert_same_render(render_with_gradients(scenes[1], 32, tile_size)[0], exact)
     assert speculating == [guess.capacity, count]
     after = next(iter(raster_ops._speculations.values()))
-    assert {"capacity": count > guess.capacity, "key dtype": (guess.key_dtype, after.key_dtype) == (torch.uint32, torch.int64),
-            "sort bits": (guess.end_bit, after.end_bit) == (24, 32)}[wrong]  # fmt: skip
+    if wrong == "capacity":
+        assert count > guess.capacity
+    elif wrong == "key dtype":
+        assert (guess.key_dtype, after.key_dtype) == (torch.uint32, torch.int64)
+    else:
+        assert (guess.end_bit, after.end_bit) == (24, 32)
 
 
 def test_speculative_capacity_is_cut_to_the_sort_budget(speculating):

@@ -383,7 +383,7 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
         radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, flags,
                          visible, ranges, wdev)  # fmt: skip
         inclusive_scan(tile_counts, offsets)
-        binning = _Binning(splats, radii, ints, tile_counts, offsets, flags, B, settings, len(ranges))
+        binning = _Binning(splats, radii, ints, tile_counts, offsets, flags, B, settings)
         composite = _composite_launch(device, settings.tile_size, len(ranges))
         shape = (device, B, N, settings.width, settings.height, settings.tile_size)
         count, sorted_ids, outputs = _bin_and_composite(
@@ -701,7 +701,7 @@ def _bytes_per_intersection(key_dtype: torch.dtype) -> int:
 
 
 class _Speculation(NamedTuple):
-    """What a CUDA call guesses from the last call of its shape, to emit and sort before its host read.
+    """What a CUDA call guesses from the last call of its shape, to bin and composite before its host read.
 
     Attributes:
         capacity: intersections the sort buffers take; key_dtype: ``torch.uint32`` or ``torch.int64``; end_bit:
@@ -718,7 +718,7 @@ class _Speculation(NamedTuple):
 
 
 SPECULATIVE_DEVICE_TYPES = ("cuda",)
-"""Device types on which a call emits and sorts before its host read (:class:`_Speculation`); on the CPU the
+"""Device types on which a call bins and composites before its host read (:class:`_Speculation`); on the CPU the
 read costs nothing, and a guessed capacity only sorts more."""
 
 SPECULATION_SLACK = 1 / 8
@@ -792,7 +792,11 @@ class _Binning(NamedTuple):
     flags: torch.Tensor
     num_cameras: int
     settings: _Settings
-    num_tiles: int
+
+    @property
+    def num_tiles(self) -> int:
+        """Flat tiles of the call: cameras x tiles per image."""
+        return self.num_cameras * self.settings.tiles_x * self.settings.tiles_y
 
 
 def _sort_buffers(like: torch.Tensor, capacity: int, key_dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
@@ -847,7 +851,8 @@ def _bin_and_composite(binning: _Binning, ranges: torch.Tensor, colors_or_black:
         outputs = _composite_outputs(binning.num_cameras, settings, splats)
         _composite_forward(ranges, splats, colors_or_black, settings, composite, sorted_ids, outputs, wdev)
     else:
-        _emit(binning, 0, *_sort_buffers(binning.ints, 0, torch.uint32), wdev)  # only publishes the key layout
+        no_keys, no_values = (_zero_length(splats.device, dtype, ()) for dtype in (torch.uint32, torch.int32))
+        _emit(binning, 0, no_keys, no_values, wdev)  # only publishes the key layout
         read = stage_host_values(binning.ints, wdev, *_read_span(binning))
     count, key = _read_binning(read, max_bytes)
     if guess is not None and guess.covers(count, key):
@@ -857,7 +862,8 @@ def _bin_and_composite(binning: _Binning, ranges: torch.Tensor, colors_or_black:
             sorted_ids = None  # the failed guess's buffers go before the exact ones are allocated
             ranges.zero_()
         sorted_ids = _bin(binning, count, key.dtype, key.bits, ranges, wdev)[0]
-        outputs = outputs or _composite_outputs(binning.num_cameras, settings, splats)
+        if outputs is None:
+            outputs = _composite_outputs(binning.num_cameras, settings, splats)
         _composite_forward(ranges, splats, colors_or_black, settings, composite, sorted_ids, outputs, wdev)
     if speculation_shape is not None:
         _remember(speculation_shape, count, key)
