@@ -11,15 +11,15 @@ import pytest
 import torch
 from PIL import Image
 
-from codecsplat_warp.data import (FORMATS, detect_formats, load_colmap, load_llff, load_middlebury, load_nerf,
-                                  load_neus, load_scene, load_scene_json)
+from codecsplat_warp.data import (FORMATS, detect_formats, load_7scenes, load_colmap, load_kitti, load_llff,
+                                  load_middlebury, load_nerf, load_neus, load_scene, load_scene_json)
 from codecsplat_warp.data.colmap import CAMERA_MODELS, read_model
 from codecsplat_warp.errors import DataError
 
 C2W_TOLERANCE = 1e-4
 INTRINSICS_RELATIVE_TOLERANCE = 1e-3
 NATIVE_LOADERS = {"llff": load_llff, "nerf": load_nerf, "neus": load_neus, "middlebury": load_middlebury,
-                  "colmap": load_colmap}
+                  "colmap": load_colmap, "kitti": load_kitti, "7scenes": load_7scenes}
 
 
 def _scene_dirs(root: pathlib.Path) -> list[pathlib.Path]:
@@ -93,7 +93,9 @@ def test_images_decode_at_camera_size(data_root):
 def test_load_scene_accepts_pose_files(data_root):
     for scene_dir, file in ((data_root / "cap_beer", "poses_bounds.npy"), (data_root / "cap_gum", "transforms_train.json"),
                             (data_root / "dtu_scan37", "cameras_sphere.npz"), (data_root / "middlebury_dino", "dino_par.txt"),
-                            (data_root / "llff_room", "cameras.json")):
+                            (data_root / "other_kitti00", "poses.txt"),
+                            (data_root / "other_7scenes_redkitchen", "camera-intrinsics.txt"),
+                            (data_root / "other_dancer", "transforms.json"), (data_root / "llff_room", "cameras.json")):
         scene = load_scene(scene_dir / file)
         assert scene.key == scene_dir.name and scene.num_views == len(_reference_cameras(scene_dir))
     scene = load_scene(data_root / "llff_room" / "sparse" / "0")
@@ -268,6 +270,94 @@ def test_nerf_errors(tmp_path):
     scene = load_nerf(file, near=0.1, far=3.0)
     assert scene.cameras.K[0, 0, 0].item() == pytest.approx(0.5 * 8 / np.tan(0.5))
     assert torch.allclose(scene.cameras.c2w[0], torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64)))
+
+
+def test_nerf_per_frame_matrix(tmp_path):
+    """A per-frame 3x3 ``K`` (other_dancer's layout) gives that frame's fx, fy, cx, cy; explicit keys win over it."""
+    _tiny_jpegs(tmp_path / "images", ["a.jpg", "b.jpg"])
+    K = [[[7.0, 0, 4.1], [0, 6.5, 2.9], [0, 0, 1]], [[7.5, 0, 3.9], [0, 7.2, 3.1], [0, 0, 1]]]
+    frames = [{"file_path": f"images/{n}.jpg", "transform_matrix": np.eye(4).tolist(), "K": k} for n, k in zip("ab", K)]
+    frames[1]["cx"] = 4.0
+    file = tmp_path / "transforms.json"
+    file.write_text(json.dumps({"w": 8, "h": 6, "frames": frames}))
+    scene = load_nerf(file, near=0.1, far=3.0)
+    np.testing.assert_array_equal(scene.cameras.K[0].numpy(), K[0])
+    np.testing.assert_array_equal(scene.cameras.K[1].numpy(), [[7.5, 0, 4.0], [0, 7.2, 3.1], [0, 0, 1]])
+    file.write_text(json.dumps({"w": 8, "h": 6, "K": K[0], "frames": [{k: v for k, v in f.items() if k != "K"}
+                                                                      for f in frames]}))
+    assert load_nerf(file, near=0.1, far=3.0).cameras.K[0, 0, 0].item() == 7.0  # a top-level K serves every frame
+    for bad, expected in ((K[0][:2], r"'K' must be 3x3, got shape \(2, 3\)"), ([[7, 0, "x"]] * 3, r"'K' must be a 3x3 matrix"),
+                          ([[7, 0.5, 4], [0, 7, 3], [0, 0, 1]], r"'K' must be a pinhole matrix"),
+                          ([[7, 0, 4], [0, float("nan"), 3], [0, 0, 1]], r"'K' holds NaN or Inf")):
+        frames[1]["K"] = bad
+        file.write_text(json.dumps({"w": 8, "h": 6, "frames": frames}))
+        with pytest.raises(DataError, match=r"transforms\.json: frame 1 \(images/b\.jpg\): " + expected):
+            load_nerf(file)
+
+
+def _kitti(folder: pathlib.Path, poses: int, images: int, p0: str = "7 0 3.5 0 0 6.5 2.5 0 0 0 1 0") -> pathlib.Path:
+    _tiny_jpegs(folder / "images", [f"{i:06d}.jpg" for i in range(images)])
+    (folder / "images.txt").write_text("".join(f"images/{i:06d}.jpg\n" for i in range(images)))
+    (folder / "calib.txt").write_text(f"P0: {p0}\nP1: 7 0 3.5 -3.8 0 6.5 2.5 0 0 0 1 0\n")
+    lines = [" ".join(str(v) for v in np.c_[np.eye(3), [0, 0, float(i)]].ravel()) for i in range(poses)]
+    (folder / "poses.txt").write_text("\n".join(lines) + "\n")
+    return folder / "poses.txt"
+
+
+def test_kitti_loader_and_errors(tmp_path):
+    """KITTI poses.txt rows are c2w (OpenCV axes); calib.txt P0 gives K with integer pixel centres (+0.5 here)."""
+    file = _kitti(tmp_path / "good", 3, 3)
+    assert list(detect_formats(file.parent)) == ["kitti"] and load_scene(file).source.startswith("kitti:")
+    scene = load_kitti(file, near=0.5, far=20.0)
+    assert scene.frame_names == ["images/000000.jpg", "images/000001.jpg", "images/000002.jpg"]
+    np.testing.assert_array_equal(scene.cameras.K[0].numpy(), [[7, 0, 4.0], [0, 6.5, 3.0], [0, 0, 1]])
+    np.testing.assert_array_equal(scene.cameras.c2w[2, :3, 3].numpy(), [0, 0, 2])
+    (file.parent / "images.txt").unlink()  # then images/ in natural order
+    assert load_kitti(file).frame_names == scene.frame_names
+    with pytest.raises(DataError, match=r"poses\.txt: 4 pose lines but 3 images"):
+        load_kitti(_kitti(tmp_path / "count", 4, 3))
+    with pytest.raises(DataError, match=r"calib\.txt: P0 must be \[\[fx, 0, cx, 0\]"):
+        load_kitti(_kitti(tmp_path / "p0", 2, 2, p0="7 0 3.5 -3.8 0 6.5 2.5 0 0 0 1 0"))
+    with pytest.raises(DataError, match=r"calib\.txt: P0: expected 12 numbers"):
+        load_kitti(_kitti(tmp_path / "short", 2, 2, p0="7 0 3.5 0"))
+    file = _kitti(tmp_path / "nan", 2, 2)
+    file.write_text(file.read_text().replace("1.0", "nan", 1))
+    with pytest.raises(DataError, match=r"poses\.txt: frame 0: pose holds NaN or Inf"):
+        load_kitti(file)
+    file.write_text("1 0 0 0\n")
+    with pytest.raises(DataError, match=r"poses\.txt: frame 0: expected 12 numbers"):
+        load_kitti(file)
+
+
+def _seven_scenes(folder: pathlib.Path, frames: int) -> pathlib.Path:
+    _tiny_jpegs(folder / "images", [f"frame-{i:06d}.color.jpg" for i in range(frames)])
+    (folder / "poses").mkdir()
+    for i in range(frames):
+        c2w = np.eye(4)
+        c2w[0, 3] = 0.1 * i
+        np.savetxt(folder / "poses" / f"frame-{i:06d}.pose.txt", c2w)
+    np.savetxt(folder / "camera-intrinsics.txt", [[7.0, 0, 4.0], [0, 6.5, 3.0], [0, 0, 1]])
+    return folder / "camera-intrinsics.txt"
+
+
+def test_7scenes_loader_and_errors(tmp_path):
+    """7-Scenes camera-intrinsics.txt (pixels, used as is) + one 4x4 c2w per poses/<frame>.pose.txt."""
+    file = _seven_scenes(tmp_path / "good", 3)
+    assert list(detect_formats(file.parent)) == ["7scenes"] and load_scene(file).source.startswith("7scenes:")
+    scene = load_7scenes(file, near=0.5, far=20.0)
+    assert scene.frame_names == [f"images/frame-{i:06d}.color.jpg" for i in range(3)]
+    np.testing.assert_array_equal(scene.cameras.K[0].numpy(), [[7.0, 0, 4.0], [0, 6.5, 3.0], [0, 0, 1]])
+    np.testing.assert_allclose(scene.cameras.c2w[2, 0, 3].item(), 0.2)
+    (file.parent / "images" / "frame-000001.color.jpg").unlink()
+    with pytest.raises(DataError, match=r"frame-000001\.pose\.txt: frame 1: no colour image frame-000001\.color\.\*"):
+        load_7scenes(file)
+    file = _seven_scenes(tmp_path / "pose", 2)
+    (file.parent / "poses" / "frame-000001.pose.txt").write_text("1 0 0 0\n0 1 0 0\n0 0 1 0\n")
+    with pytest.raises(DataError, match=r"frame-000001\.pose\.txt: frame 1: expected 4 rows of 4 numbers, got 3 rows"):
+        load_7scenes(file)
+    file.write_text("7 0 4\n0 6.5 3\n0 0 2\n")
+    with pytest.raises(DataError, match=r"camera-intrinsics\.txt: expected a pinhole matrix"):
+        load_7scenes(file)
 
 
 def test_middlebury_and_neus_errors(tmp_path):

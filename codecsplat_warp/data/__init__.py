@@ -12,6 +12,8 @@ format                    detected by
 ``neus``                  ``cameras_sphere.npz``
 ``middlebury``            ``*_par.txt``
 ``colmap``                ``sparse/0/``, ``sparse/`` or the folder itself holding cameras/images .txt/.bin
+``kitti``                 ``poses.txt`` next to ``calib.txt`` (KITTI odometry)
+``7scenes``               ``camera-intrinsics.txt`` next to ``poses/*.pose.txt`` (Microsoft 7-Scenes)
 ========================  =====================================================================
 
 RE10K / ACID / DL3DV ``.torch`` chunks hold many scenes: use :func:`read_chunk` / :func:`load_chunk_scene`.
@@ -25,6 +27,7 @@ from ..errors import DataError
 from .chunks import load_chunk_scene, load_index, read_chunk, write_chunks
 from .colmap import is_colmap_model, load_colmap, read_model
 from .dataset import ProceduralDataset, SceneDataset, make_dataloader
+from .kitti import load_kitti
 from .llff import load_llff
 from .middlebury import load_middlebury
 from .nerf import load_nerf
@@ -33,16 +36,17 @@ from .preprocess import DATASET_CONFIGS, DatasetConfig, preprocess_scene, resize
 from .procedural import ProceduralConfig, procedural_scene, render
 from .scene import EncodedImages, Scene
 from .scene_json import is_scene_json, load_scene_json
+from .sevenscenes import load_7scenes, pose_files_of
 from .views import (
     BoundedSamplerConfig, ViewSelection, load_evaluation_index, sample_bounded_views, split_context_targets,
 )
 
-FORMATS = ("scene-json", "llff", "nerf", "neus", "middlebury", "colmap")
+FORMATS = ("scene-json", "llff", "nerf", "neus", "middlebury", "colmap", "kitti", "7scenes")
 """Format names accepted by :func:`load_scene`'s ``format`` argument."""
 
 _LOADERS = {
     "scene-json": load_scene_json, "llff": load_llff, "nerf": load_nerf, "neus": load_neus,
-    "middlebury": load_middlebury, "colmap": load_colmap,
+    "middlebury": load_middlebury, "colmap": load_colmap, "kitti": load_kitti, "7scenes": load_7scenes,
 }
 
 
@@ -51,7 +55,8 @@ def load_scene(path, format: str | None = None, prefer_native: bool = False) -> 
 
     Args:
         path: a scene folder, a pose file (``cameras.json``, ``poses_bounds.npy``, ``transforms*.json``,
-            ``cameras_sphere.npz``, ``*_par.txt``) or a COLMAP model folder.
+            ``cameras_sphere.npz``, ``*_par.txt``, KITTI ``poses.txt``, 7-Scenes ``camera-intrinsics.txt``)
+            or a COLMAP model folder.
         format: force one of :data:`FORMATS` (the pose file is then looked up in the folder).
         prefer_native: in a folder holding both, read the native pose file instead of ``cameras.json``.
 
@@ -76,7 +81,8 @@ def load_scene(path, format: str | None = None, prefer_native: bool = False) -> 
         if name in candidates:
             return _LOADERS[name](candidates[name])
     raise DataError(f"{path}: no supported pose file (cameras.json, poses_bounds.npy, transforms*.json, "
-                    "cameras_sphere.npz, *_par.txt, COLMAP sparse model)")
+                    "cameras_sphere.npz, *_par.txt, COLMAP sparse model, KITTI poses.txt + calib.txt, "
+                    "7-Scenes camera-intrinsics.txt + poses/*.pose.txt)")
 
 
 def detect_formats(folder) -> dict[str, pathlib.Path]:
@@ -97,8 +103,12 @@ def _format_of_file(file: pathlib.Path) -> str:
         return "neus"
     if name.endswith("_par.txt"):
         return "middlebury"
+    if name == "poses.txt":
+        return "kitti"
+    if name == "camera-intrinsics.txt":
+        return "7scenes"
     raise DataError(f"{file}: unsupported pose file (expected cameras.json, poses_bounds.npy, transforms*.json, "
-                    "cameras_sphere.npz or *_par.txt)")
+                    "cameras_sphere.npz, *_par.txt, poses.txt or camera-intrinsics.txt)")
 
 
 def _pose_files(folder: pathlib.Path) -> dict[str, pathlib.Path]:
@@ -120,14 +130,25 @@ def _pose_files(folder: pathlib.Path) -> dict[str, pathlib.Path]:
         if is_colmap_model(model):
             found["colmap"] = model
             break
+    if (folder / "poses.txt").is_file() and (folder / "calib.txt").is_file():
+        found["kitti"] = folder / "poses.txt"
+    if (folder / "camera-intrinsics.txt").is_file() and _has_7scenes_poses(folder):
+        found["7scenes"] = folder / "camera-intrinsics.txt"
     return found
+
+
+def _has_7scenes_poses(folder: pathlib.Path) -> bool:
+    try:
+        return bool(pose_files_of(folder))
+    except DataError:
+        return False
 
 
 __all__ = [
     "BoundedSamplerConfig", "DATASET_CONFIGS", "DataError", "DatasetConfig", "EncodedImages", "FORMATS",
     "ProceduralConfig", "ProceduralDataset", "Scene", "SceneDataset", "ViewSelection", "detect_formats",
-    "is_colmap_model", "load_chunk_scene", "load_colmap", "load_evaluation_index", "load_index", "load_llff",
-    "load_middlebury", "load_nerf", "load_neus", "load_scene", "load_scene_json", "make_dataloader",
-    "preprocess_scene", "procedural_scene", "read_chunk", "read_model", "render", "resize_and_crop",
-    "sample_bounded_views", "split_context_targets", "write_chunks",
+    "is_colmap_model", "load_7scenes", "load_chunk_scene", "load_colmap", "load_evaluation_index", "load_index",
+    "load_kitti", "load_llff", "load_middlebury", "load_nerf", "load_neus", "load_scene", "load_scene_json",
+    "make_dataloader", "preprocess_scene", "procedural_scene", "read_chunk", "read_model", "render",
+    "resize_and_crop", "sample_bounded_views", "split_context_targets", "write_chunks",
 ]

@@ -263,3 +263,20 @@ def bounds_from_focus(c2w: np.ndarray) -> tuple[float, float]:
     near, far = 0.25 * float(distances.min()), 4.0 * float(distances.max())
     return max(near, 1e-3 * far), far
 
+
+
+def shared_pinhole_scene(file: pathlib.Path, folder: pathlib.Path, frame_names: list[str], c2w: np.ndarray,
+                         intrinsics: tuple[float, float, float, float], near: float | None, far: float | None,
+                         source: str) -> Scene:
+    """A scene of one pinhole camera (``intrinsics`` = fx, fy, cx, cy in pixels, centres at +0.5) at the poses
+    ``c2w`` [V,4,4] (OpenCV camera-to-world), images ``folder/frame_names`` (their size read from the first);
+    near/far from :func:`bounds_from_focus` where not given. ``source`` names the format and file."""
+    width, height = read_image_size(folder / frame_names[0], f"{file}: frame 0")
+    if near is None or far is None:
+        guess_near, guess_far = bounds_from_focus(c2w)
+        near, far = guess_near if near is None else near, guess_far if far is None else far
+    V = len(c2w)
+    fx, fy, cx, cy = (np.full(V, value) for value in intrinsics)
+    cameras = cameras_from_arrays(file, fx, fy, cx, cy, c2w, near, far, width, height)
+    return Scene(images=EncodedImages([folder / n for n in frame_names], width, height), cameras=cameras,
+                 key=folder.name, source=source, frame_names=frame_names)
