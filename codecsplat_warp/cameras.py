@@ -167,6 +167,25 @@ class Cameras:
             index = [index]
         return self._derive(K=self.K[index], w2c=self.w2c[index], near=self.near[index], far=self.far[index])
 
+    @staticmethod
+    def concat(batches: "list[Cameras]") -> "Cameras":
+        """One batch of the cameras of ``batches`` in order (e.g. several scenes' views in one training batch).
+
+        Raises:
+            CameraError: no batches, or batches of different image size, device or dtype.
+        """
+        if not batches:
+            raise CameraError("Cameras.concat needs at least one batch")
+        first = batches[0]
+        for other in batches[1:]:
+            if (other.width, other.height, other.device, other.dtype) != (first.width, first.height, first.device,
+                                                                          first.dtype):
+                raise CameraError(f"Cameras.concat needs one image size, device and dtype: {first.width}x"
+                                  f"{first.height} {first.device} {first.dtype} vs {other.width}x{other.height} "
+                                  f"{other.device} {other.dtype}")
+        cat = lambda name: torch.cat([getattr(b, name) for b in batches])  # noqa: E731
+        return first._derive(K=cat("K"), w2c=cat("w2c"), near=cat("near"), far=cat("far"))
+
     def rescaled(self, width: int, height: int) -> "Cameras":
         """The same cameras for an image resampled to ``width`` x ``height`` (e.g. a 1/4 feature grid)."""
         if (width, height) == (self.width, self.height):

@@ -122,6 +122,8 @@ def build_parser() -> argparse.ArgumentParser:
                           help=f"comma list of {', '.join(BASELINE_NAMES)}, or none")
     evaluate.add_argument("--scenes", default="", help="comma list of scene folder names to keep (default: all)")
     evaluate.add_argument("--samples-per-scene", type=int, default=1)
+    evaluate.add_argument("--index", help="evaluation index JSON (pixelSplat form: scene folder -> context and target "
+                                          "frames); fixes the samples, --samples-per-scene is then unused")
     evaluate.add_argument("--targets", type=int, help="target views per sample (default: the protocol's, 3)")
     evaluate.add_argument("--lpips-weights", help="folder with lpips_{vgg,alex}.safetensors (default $CODECSPLAT_LPIPS_WEIGHTS)")
     evaluate.add_argument("--png-sh-clusters", type=int, default=8192, help="K_SH of the PNG baseline")
@@ -390,7 +392,8 @@ def _cmd_eval(args) -> int:
                         samples_per_scene=args.samples_per_scene, target_views=args.targets,
                         lpips_weights=args.lpips_weights, png_sh_clusters=args.png_sh_clusters,
                         kmeans_iterations=args.kmeans_iterations, progress=not args.json,
-                        scenes=tuple(name.strip() for name in args.scenes.split(",") if name.strip()))
+                        scenes=tuple(name.strip() for name in args.scenes.split(",") if name.strip()),
+                        index=args.index)
     result = evaluate(model, config, device)
     lines = [f"{len(result['scenes'])} scene(s), {args.protocol} protocol, {result['machine']}",
              "", "Table 1", result["tables"]["table1"], "", "Table 2 (seconds)", result["tables"]["table2"], "",

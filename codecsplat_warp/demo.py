@@ -7,8 +7,10 @@ target views rendered and scored against the exact ground-truth images. Written 
 * ``scene-lambda<L>.csplat``: the scene bitstreams;
 * ``scene.ply``: the Gaussians decoded from the largest lambda, pruned of those that no demo view (context or
   target) can show (:func:`~codecsplat_warp.model.prune.prune_gaussians`; 3DGS PLY);
-* ``renders/target<i>-lambda<L>.png`` and ``comparison.png`` (ground truth | one column per lambda);
-* ``rate_distortion.png`` and ``summary.json`` (bytes per part, metrics, seconds).
+* ``renders/target<i>-lambda<L>.png`` and ``comparison.png`` (ground truth | copy the nearest context view |
+  the codec-free path | one column per lambda);
+* ``rate_distortion.png`` and ``summary.json`` (bytes per part, metrics, seconds; the two references under
+  ``references``: what copying the nearest context view scores at zero bytes, and the model without its codec).
 """
 
 from __future__ import annotations
@@ -28,7 +30,8 @@ from .codec import bytes_report, check_lambda
 from .data.procedural import ProceduralConfig, procedural_scene
 from .errors import InputError
 from .data import split_context_targets
-from .evaluate import Sample, format_bytes, plot_rate_distortion, pyplot, save_figure, timed
+from .evaluate import (BACKBONE, COPY_NEAREST, Sample, format_bytes, nearest_context_images, plot_rate_distortion,
+                       pyplot, save_figure, timed)
 from .export.files import atomic_output, write_bytes
 from .export.ply import write_ply
 from .export.video import to_uint8_frames
@@ -54,10 +57,11 @@ class DemoConfig:
 
 
 def demo_sample(model_config, seed: int, target_views: int) -> Sample:
-    """A procedural room at the model's size: ``num_views`` context views along an orbit, targets between."""
+    """A procedural room at the model's size, captured forward-facing (cameras on a small circle, looking the same
+    way, as in an LLFF capture): ``num_views`` context views, targets between them."""
     views = model_config.num_views
     scene = procedural_scene(seed, ProceduralConfig(width=model_config.width, height=model_config.height,
-                                                    num_views=views + target_views, layout="room", trajectory="orbit"))
+                                                    num_views=views + target_views, layout="room", trajectory="forward"))
     context, target = split_context_targets(scene.cameras, 0, views, target_views)
     images = scene.images.float() / 255.0
     cameras = scene.cameras.to(dtype=torch.float32)
@@ -76,8 +80,10 @@ def run_demo(model, config: DemoConfig, device: torch.device) -> dict:
     metrics = ImageMetrics(config.lpips_weights, device)
     start = time.perf_counter()
     quiet = None if config.progress else True  # None: a bar only when stderr is a terminal
-    with tqdm(total=2 + 2 * len(lambdas), desc="demo", unit="step", disable=quiet) as progress:
+    with tqdm(total=3 + 2 * len(lambdas), desc="demo", unit="step", disable=quiet) as progress:
         sample = demo_sample(model.config, config.seed, config.target_views).to(device)
+        progress.update(1)
+        references, reference_renders = reference_views(model, sample, metrics)
         progress.update(1)
         rows, renders, decoded = [], [], None
         for lam in lambdas:
@@ -100,13 +106,13 @@ def run_demo(model, config: DemoConfig, device: torch.device) -> dict:
         progress.set_postfix_str("PLY and plots")
         kept, ply_report = prune_gaussians(decoded.gaussians, _demo_views(sample))  # the largest lambda's scene
         ply_bytes = write_ply(out / "scene.ply", kept)
-        files = _write_images(out, sample, rows, renders)
+        files = _write_images(out, sample, rows, renders, references, reference_renders)
         plot_rate_distortion(rows, out / "rate_distortion.png")
         progress.update(1)
     summary = {
         "config": asdict(config), "device": str(device), "model_id": model_id(model), "scene": sample.scene, "context_views": sample.context,
         "target_views": sample.target, "image_size": [sample.context_cameras.height, sample.context_cameras.width],
-        "lpips": metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1", "rows": rows,
+        "lpips": metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1", "rows": rows, "references": references,
         "ply": {"path": str(out / "scene.ply"), "gaussians": len(kept), "pruned": ply_report.pruned,
                 "prune": ply_report.to_dict(), "bytes": ply_bytes, "lambda": lambdas[-1]},
         "files": [str(out / f"scene-lambda{lam:g}.csplat") for lam in lambdas] + files
@@ -115,6 +121,22 @@ def run_demo(model, config: DemoConfig, device: torch.device) -> dict:
     }
     write_json(out / "summary.json", summary)
     return summary
+
+
+def reference_views(model, sample: Sample, metrics: ImageMetrics) -> tuple[list[dict], list[np.ndarray]]:
+    """The two references every lambda is judged against, on the sample's targets: copying the nearest context
+    view (zero bytes) and the model's codec-free path. Returns their rows (``method`` and the metrics) and
+    their uint8 renders [T,H,W,3]."""
+    with torch.no_grad(), torch.autocast(sample.context_images.device.type, dtype=torch.bfloat16,
+                                         enabled=sample.context_images.device.type == "cuda"):
+        free = model(sample.context_images, sample.context_cameras)["gaussians"]
+    with torch.no_grad():
+        predictions = {COPY_NEAREST: nearest_context_images(sample.context_images, sample.context_cameras,
+                                                            sample.target_cameras),
+                       BACKBONE: model.render(free, sample.target_cameras)["rgb"]}
+    rows = [{"method": name, **{k: statistics.fmean(v) for k, v in metrics(rgb, sample.target_images).items()}}
+            for name, rgb in predictions.items()]
+    return rows, [to_uint8_frames(rgb) for rgb in predictions.values()]
 
 
 QUALITY_COLUMNS = (("psnr", "PSNR dB", ".2f"), ("ssim", "SSIM", ".3f"), ("lpips_vgg", "LPIPS-VGG", ".3f"),
@@ -130,6 +152,9 @@ def quality_table(summary: dict) -> str:
     for row in summary["rows"]:
         cells = [f"{row['lam']:g}", f"{row['bytes']:,d}"] + [format(row[key], spec) for key, _, spec in columns]
         lines.append("| " + " | ".join(cells) + " |")
+    for row in summary.get("references", []):
+        cells = [row["method"], "0" if row["method"] == COPY_NEAREST else "-"]
+        lines.append("| " + " | ".join(cells + [format(row[key], spec) for key, _, spec in columns]) + " |")
     return "\n".join(lines)
 
 
@@ -141,8 +166,10 @@ def _demo_views(sample: Sample) -> Cameras:
                    width=context.width, height=context.height)
 
 
-def _write_images(out: pathlib.Path, sample: Sample, rows: list[dict], renders: list[np.ndarray]) -> list[str]:
-    """Per-target PNG renders and ``comparison.png`` (rows: targets; columns: ground truth, each lambda)."""
+def _write_images(out: pathlib.Path, sample: Sample, rows: list[dict], renders: list[np.ndarray],
+                  references: list[dict], reference_renders: list[np.ndarray]) -> list[str]:
+    """Per-target PNG renders and ``comparison.png`` (rows: targets; columns: ground truth, the references,
+    each lambda)."""
     import imageio.v3 as iio
 
     paths = []
@@ -153,8 +180,9 @@ def _write_images(out: pathlib.Path, sample: Sample, rows: list[dict], renders: 
                 iio.imwrite(tmp, frame, extension=".png")
             paths.append(str(path))
     truth = to_uint8_frames(sample.target_images)
-    titles = ["ground truth"] + [f"λ={r['lam']:g}: {format_bytes(r['bytes'])}, {r['psnr']:.2f} dB" for r in rows]
-    columns = [truth] + renders
+    titles = (["ground truth"] + [f"{r['method']}: {r['psnr']:.2f} dB" for r in references]
+              + [f"λ={r['lam']:g}: {format_bytes(r['bytes'])}, {r['psnr']:.2f} dB" for r in rows])
+    columns = [truth] + reference_renders + renders
     fig, axes = pyplot().subplots(len(truth), len(columns), squeeze=False,
                                   figsize=(2.6 * len(columns), 2.6 * len(truth) * truth.shape[1] / truth.shape[2] + 0.4))
     for i, row_axes in enumerate(axes):

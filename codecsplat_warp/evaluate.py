@@ -1,6 +1,7 @@
 """``codecsplat eval``: the paper's evaluation (Tables 1, 2 and 4) on a folder of scenes.
 
-For every scene sample (context views -> target views, see :func:`codecsplat_warp.data.split_context_targets`):
+For every scene sample (context views -> target views: from an evaluation index file with ``index``, else
+picked by :func:`codecsplat_warp.data.split_context_targets` around evenly spread anchors):
 
 * **CodecSplat** at each lambda: ``model.encode_scene`` -> bitstream -> ``model.decode_scene`` -> render the
   targets. Bytes are the whole bitstream (header, cameras, feature streams).
@@ -8,6 +9,8 @@ For every scene sample (context views -> target views, see :func:`codecsplat_war
   cameras)``: Gaussians, ``F_c``, ``D_enc``): the Gaussians as an uncompressed float32 3DGS PLY (the
   reconstruction upper bound), (a) PLY attributes quantised + Deflate, (b) gsplat-style PNG, (c) the
   feature ``F_c`` (and depth) in float16 + Deflate, each encoded, decoded and rendered.
+* **Copy the nearest context view**: the floor every table shows, at zero bytes: each target is predicted
+  by the context image whose camera centre is nearest to the target's, unchanged.
 
 Metrics on the targets: PSNR (prediction clipped to [0,1]), SSIM (11x11 Gaussian window), LPIPS-VGG and
 LPIPS-Alex (when weights are found); see :mod:`codecsplat_warp.metrics.image`.
@@ -39,7 +42,7 @@ from .baselines import FeatureDeflate, PlyDeflate, PngCompression
 from .bench.common import format_table, machine_name, write_json
 from .cameras import Cameras
 from .codec import bytes_report, check_lambda
-from .data import detect_formats, load_scene, split_context_targets
+from .data import detect_formats, load_evaluation_index, load_scene, split_context_targets
 from .data.preprocess import DatasetConfig, preprocess_scene
 from .errors import DataError, InputError
 from .export.files import atomic_output, write_text
@@ -50,6 +53,7 @@ from .model.pretrained import model_id
 
 CODECSPLAT = "CodecSplat"
 BACKBONE = "CodecSplat w/o codec"
+COPY_NEAREST = "Copy nearest context view"
 BASELINE_NAMES = ("ply", "png", "feature")
 """Baselines ``--baselines`` may name: (a) PLY + Deflate, (b) PNG, (c) float16 feature + Deflate."""
 
@@ -161,16 +165,55 @@ def scene_samples(path: pathlib.Path, protocol: Protocol, context_views: int, sa
     for s in range(samples):
         anchor = min(V - 1, int((s + 0.5) * V / samples))
         context, target = split_context_targets(scene.cameras, anchor, context_views, protocol.target_views)
-        width = protocol.width or scene.cameras.width // 4 * 4
-        height = protocol.height or scene.cameras.height // 4 * 4
-        frames = preprocess_scene(scene, DatasetConfig(width=width, height=height, near=0.0, far=0.0),
-                                  frames=context + target, use_config_depth_range=False)
-        pixels = frames.images.float() / 255.0
-        cameras = frames.cameras.to(dtype=torch.float32)
-        n = len(context)
-        out.append(Sample(path.name, context, target, pixels[:n], cameras.select(list(range(n))), pixels[n:],
-                          cameras.select(list(range(n, n + len(target))))))
+        out.append(protocol_sample(path.name, scene, protocol, context, target))
     return out
+
+
+def index_samples(paths: list[pathlib.Path], index_file, protocol: Protocol) -> list[Sample]:
+    """One item per entry of an evaluation index file (``{"<scene folder>": {"context": [...], "target":
+    [...]}}``, see :func:`codecsplat_warp.data.load_evaluation_index`) among the scene folders ``paths``,
+    preprocessed to the protocol, in the index's order.
+
+    Raises:
+        DataError: an entry names no scene folder of ``paths``, or a frame the scene does not have.
+    """
+    selections = load_evaluation_index(index_file)
+    by_name = {p.name: p for p in paths}
+    missing = [key for key in selections if key not in by_name]
+    if missing:
+        raise DataError(f"{index_file}: scene(s) {', '.join(missing)} are not in the data "
+                        f"(found {', '.join(by_name) or 'none'})")
+    out = []
+    for key, selection in selections.items():
+        scene = load_scene(by_name[key])
+        frames = selection.context + selection.target
+        if max(frames) >= scene.num_views:
+            raise DataError(f"{index_file}: scene {key} has {scene.num_views} views, the index asks for frame "
+                            f"{max(frames)}")
+        out.append(protocol_sample(key, scene, protocol, list(selection.context), list(selection.target)))
+    return out
+
+
+def protocol_sample(name: str, scene, protocol: Protocol, context: list[int], target: list[int]) -> Sample:
+    """The context and target frames of ``scene`` resized and centre-cropped to the protocol size (the stored
+    size cropped to multiples of 4 when the protocol has none), keeping the scene's near/far."""
+    width = protocol.width or scene.cameras.width // 4 * 4
+    height = protocol.height or scene.cameras.height // 4 * 4
+    frames = preprocess_scene(scene, DatasetConfig(width=width, height=height, near=0.0, far=0.0),
+                              frames=context + target, use_config_depth_range=False)
+    pixels = frames.images.float() / 255.0
+    cameras = frames.cameras.to(dtype=torch.float32)
+    n = len(context)
+    return Sample(name, context, target, pixels[:n], cameras.select(list(range(n))), pixels[n:],
+                  cameras.select(list(range(n, n + len(target)))))
+
+
+def nearest_context_images(context_images: torch.Tensor, context_cameras: Cameras,
+                           target_cameras: Cameras) -> torch.Tensor:
+    """[T,3,H,W]: for each target camera, the context image [V,3,H,W] whose camera centre is nearest to its own
+    (the "copy the nearest context view" prediction)."""
+    distance = torch.cdist(target_cameras.centers.double(), context_cameras.centers.double())
+    return context_images[distance.argmin(dim=1)]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -232,7 +275,7 @@ class Evaluator:
     @property
     def steps_per_sample(self) -> int:
         """Methods run per sample (progress bar units)."""
-        return 1 + len(self.lambdas) + len(self.baselines)
+        return 2 + len(self.lambdas) + len(self.baselines)
 
     def warm_up(self, sample: Sample) -> None:
         """Run the network, codec and renderer once, untimed (loads Warp kernels, warms allocators)."""
@@ -252,6 +295,7 @@ class Evaluator:
             if progress is not None:
                 progress.update(1)
 
+        step(self._copy_nearest(sample))
         for lam in self.lambdas:
             step(self._codecsplat(sample, lam))
         with torch.no_grad(), self._autocast():
@@ -277,6 +321,12 @@ class Evaluator:
             rgb = self.model.render(gaussians, sample.target_cameras)["rgb"]
         values = self.metrics(rgb, sample.target_images)
         return {name: statistics.fmean(v) for name, v in values.items()}
+
+    def _copy_nearest(self, sample: Sample) -> Row:
+        rgb = nearest_context_images(sample.context_images, sample.context_cameras, sample.target_cameras)
+        values = self.metrics(rgb, sample.target_images)
+        return Row(sample.scene, COPY_NEAREST, "no bitstream", 0, {name: statistics.fmean(v) for name, v in values.items()},
+                   0.0, 0.0, 0.0)
 
     def _codecsplat(self, sample: Sample, lam: float) -> Row:
         with backbone_clock(self.model, self.device) as marks:
@@ -349,7 +399,7 @@ def table1(summary: list[dict]) -> str:
 
 def table2(summary: list[dict]) -> str:
     """Table 2: GS generation, compression and decompression seconds; CodecSplat averaged over its lambdas."""
-    rows = [s for s in _paper_order(summary) if s["method"] != CODECSPLAT]
+    rows = [s for s in _paper_order(summary) if s["method"] not in (CODECSPLAT, COPY_NEAREST)]
     codec = [s for s in summary if s["method"] == CODECSPLAT]
     if codec:
         lams = sorted(s["lam"] for s in codec)
@@ -405,7 +455,7 @@ def _figure(panels: int):
 
 def _plot_methods(ax, summary: list[dict], x: Callable, y: Callable, connect: bool) -> None:
     """CodecSplat's operating points (joined in lambda order when ``connect``) and one marker per other method,
-    on a log x axis."""
+    on a log x axis; the copy-nearest floor (no bytes, no time) as a dashed horizontal line."""
     codec = sorted((s for s in summary if s["method"] == CODECSPLAT), key=lambda s: s["lam"])
     if codec:
         ax.plot([x(s) for s in codec], [y(s) for s in codec], "o-" if connect else "o", color="C3", label=CODECSPLAT,
@@ -413,8 +463,11 @@ def _plot_methods(ax, summary: list[dict], x: Callable, y: Callable, connect: bo
         for s in codec:
             ax.annotate(f"λ={s['lam']:g}", (x(s), y(s)), textcoords="offset points", xytext=(4, -10), fontsize=7)
     styles = zip("sD^vP*X", ("C0", "C1", "C2", "C4", "C5", "C6", "C7"))
-    for s, (marker, colour) in zip((s for s in summary if s["method"] != CODECSPLAT), styles):
+    for s, (marker, colour) in zip((s for s in summary if s["method"] not in (CODECSPLAT, COPY_NEAREST)), styles):
         ax.plot([x(s)], [y(s)], marker, color=colour, label=f"{s['method']} ({s['setting']})")
+    for s in summary:
+        if s["method"] == COPY_NEAREST:
+            ax.axhline(y(s), color="0.4", ls="--", lw=1, label=f"{COPY_NEAREST} (0 bytes)")
     ax.set_xscale("log")
     ax.xaxis.set_minor_formatter(pyplot().NullFormatter())
     ax.grid(True, which="both", alpha=0.3)
@@ -452,6 +505,8 @@ class EvalConfig:
     progress: bool = True
     scenes: tuple[str, ...] = ()
     """Scene folder names to keep (e.g. the held-out ones); empty keeps every scene under ``data``."""
+    index: str | None = None
+    """Evaluation index file: the scenes and their context/target frames (``samples_per_scene`` unused)."""
 
 
 def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
@@ -477,7 +532,10 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
     png = PngCompression(sh_clusters=config.png_sh_clusters, kmeans_iterations=config.kmeans_iterations)
     metrics = ImageMetrics(config.lpips_weights, device)
     samples, skipped = [], []
-    for path in select_scenes(find_scenes(config.data), tuple(sorted(config.scenes))):
+    paths = select_scenes(find_scenes(config.data), tuple(sorted(config.scenes)))
+    if config.index:
+        samples = index_samples(paths, config.index, protocol)
+    for path in paths if not config.index else []:
         try:
             samples += scene_samples(path, protocol, protocol.context_views or model.config.num_views,
                                      config.samples_per_scene)

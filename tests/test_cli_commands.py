@@ -90,15 +90,18 @@ def test_eval_writes_both_tables_with_baselines_and_plots(workspace):
     result = codecsplat(workspace, "eval", "--data", "scenes", "--protocol", "scene", "--lambdas", "16,1024",
                         "--targets", "2", "--png-sh-clusters", "64", "--kmeans-iterations", "2", "-o", "eval")
     methods = [(s["method"], s["setting"]) for s in result["summary"]]
-    assert methods == [("CodecSplat", "λ=16"), ("CodecSplat", "λ=1024"), ("CodecSplat w/o codec→PLY", "float32"),
-                       ("CodecSplat w/o codec→PLY+Deflate", "16/8-bit"), ("CodecSplat w/o codec→PNG", "K_SH=64"),
-                       ("CodecSplat w/ Deflate", "float16 features")]
-    assert result["scenes"] == ["a", "b"] and len(result["rows"]) == 2 * 6
-    for row in result["summary"]:
+    assert methods == [("Copy nearest context view", "no bitstream"), ("CodecSplat", "λ=16"), ("CodecSplat", "λ=1024"),
+                       ("CodecSplat w/o codec→PLY", "float32"), ("CodecSplat w/o codec→PLY+Deflate", "16/8-bit"),
+                       ("CodecSplat w/o codec→PNG", "K_SH=64"), ("CodecSplat w/ Deflate", "float16 features")]
+    assert result["scenes"] == ["a", "b"] and len(result["rows"]) == 2 * 7
+    floor, coded = result["summary"][0], result["summary"][1:]  # the zero-byte floor: no bitstream, no time
+    assert floor["bytes"] == 0 and floor["gen_s"] == floor["compress_s"] == floor["decompress_s"] == 0
+    assert 0 < floor["ssim"] <= 1 and floor["psnr"] > 0
+    for row in coded:
         assert row["samples"] == 2 and row["bytes"] > 0 and 0 < row["ssim"] <= 1 and row["psnr"] > 0
         assert min(row["gen_s"], row["compress_s"], row["decompress_s"]) > 0
-    raw_ply = result["summary"][2]["bytes"]
-    assert all(s["bytes"] < raw_ply for s in result["summary"] if s is not result["summary"][2])
+    raw_ply = coded[2]["bytes"]
+    assert all(s["bytes"] < raw_ply for s in coded if s is not coded[2])
     markdown = (workspace / "eval" / "tables.md").read_text()
     assert "Table 1" in markdown and "Table 2" in markdown and "CodecSplat w/o codec→PNG" in markdown
     assert "λ=16,…,1024" in result["tables"]["table2"]

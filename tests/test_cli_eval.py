@@ -24,10 +24,22 @@ def _line_of_cameras(count: int) -> Cameras:
 
 
 def test_evaluation_views_split_the_anchors_neighbourhood():
-    cameras = _line_of_cameras(10)  # centres at x = 0..9: by distance to view 4 the order is 4, 3, 5, 2, 6
-    assert split_context_targets(cameras, anchor=4, num_context=2, num_target=3) == ([4, 6], [3, 5, 2])
+    cameras = _line_of_cameras(10)  # centres at x = 0..9: by distance to view 4 the order is 4, 3, 5, 2, 6, 1, ...
+    # the cluster around the anchor grows until 3 views lie between the anchor and the context's far end
+    assert split_context_targets(cameras, anchor=4, num_context=2, num_target=3) == ([4, 0], [2, 1, 3])
     context, target = split_context_targets(cameras, anchor=0, num_context=3, num_target=2)
-    assert context == [0, 2, 4] and target == [1, 3]
+    assert sorted(context) == [0, 2, 4] and target == [1, 3]
+    assert split_context_targets(cameras, anchor=4, num_context=2, num_target=1) == ([4, 2], [3])
+    assert split_context_targets(cameras, anchor=4, num_context=2, num_target=1, spread=3) == ([4, 1], [2])  # wider
+
+
+def test_split_leaves_out_views_that_look_elsewhere():
+    cameras = _line_of_cameras(10)
+    c2w = cameras.c2w.clone()
+    c2w[3, :3, :3] = torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]], dtype=torch.float64)  # turned 90°
+    turned = Cameras.from_c2w(cameras.K, c2w, cameras.near, cameras.far, 16, 16)
+    context, target = split_context_targets(turned, anchor=4, num_context=2, num_target=3)
+    assert 3 not in context + target and (context, target) == ([4, 9], [6, 7, 5])
     with pytest.raises(DataError, match="need 11"):
         split_context_targets(cameras, 0, 8, 3)
 

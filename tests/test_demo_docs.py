@@ -39,6 +39,9 @@ def test_documented_demo_numbers_match_a_fresh_run(tmp_path):
         assert abs(got["bytes"] - want["bytes"]) <= 0.005 * want["bytes"], (got["lam"], got["bytes"], want["bytes"])
         assert got["psnr"] == pytest.approx(want["psnr"], abs=0.05)
         assert got["ssim"] == pytest.approx(want["ssim"], abs=0.005)
+    assert [r["method"] for r in fresh["references"]] == [r["method"] for r in documented["references"]]
+    for got, want in zip(fresh["references"], documented["references"]):  # copy-nearest floor, codec-free path
+        assert got["psnr"] == pytest.approx(want["psnr"], abs=0.05), got["method"]
 
 
 def test_the_documented_table_is_the_one_in_training_md():

@@ -58,7 +58,9 @@ def test_forward_shapes_bounds_and_finite_gradients(scene, device):
 
     rgb = model.render(g, cameras.select([1, 2]).to(device))["rgb"]
     assert rgb.shape == (2, 3, H, W)
+    assert out["S_aux"].shape == (V, H, W)  # training mode: the depth head's auxiliary on the detached F_c
     loss = ((rgb - images[[1, 2]].to(device)) ** 2).mean() + out["F_c"].square().mean()
+    loss = loss + (out["S_aux"] - out["S_enc"].detach()).abs().mean()
     loss.backward()
     for name, p in model.named_parameters():
         assert p.grad is not None, f"{name} got no gradient"

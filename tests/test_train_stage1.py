@@ -11,11 +11,11 @@ from conftest import needs_lpips
 from train.checkpoint import (
     MAX_FILE_BYTES, join_tensors, latest_checkpoint, load_checkpoint, save_checkpoint, split_tensors,
 )
-from train.data import make_source, training_scenes
+from train.data import DataSpec, make_source, training_scenes
 from codecsplat_warp.data import split_context_targets
 from train.pack_scenes import pack_scene
 from train.stage1 import METRICS_FILE, TrainConfig, lr_factor, make_optimizer, parse_args, train
-from train.validate import nearest_context_images, plot_curve, read_metrics, SceneScore
+from train.validate import plot_curve, read_metrics, SceneScore
 
 from codecsplat_warp.errors import InputError  # noqa: E402
 from codecsplat_warp.model import CodecSplat, get_preset  # noqa: E402
@@ -103,22 +103,17 @@ def test_held_out_scenes_are_left_out_and_must_exist(data_root):
         training_scenes(data_root, ["no_such_scene"])
 
 
-def test_mixed_source_alternates_procedural_and_real_packed_scenes(data_root, tmp_path):
+def test_mixed_source_draws_procedural_and_real_packed_scenes(data_root, tmp_path):
     pack_scene(data_root / "llff_horns", tmp_path / "llff_horns", short_side=64)
     pack_scene(data_root / "dtu_scan37", tmp_path / "dtu_scan37", short_side=64)
-    source = make_source(f"mix:{tmp_path}", get_preset("tiny"), seed=0, holdout=["dtu_scan37"])
-    real, procedural = source(1), source(0)
-    assert real.key == "llff_horns" and procedural.key != "llff_horns"
-    assert real.context_images.shape == procedural.context_images.shape == (2, 3, 32, 48)
-
-
-def test_nearest_view_baseline_picks_the_closest_context_camera():
-    from train.data import TrainingSample
-
-    cams = _cameras(4)
-    images = torch.arange(4, dtype=torch.float32)[:, None, None, None].expand(4, 3, 32, 48)
-    sample = TrainingSample(images[[0, 3]], cams.select([0, 3]), images[[1, 2]], cams.select([1, 2]), "k")
-    assert nearest_context_images(sample)[:, 0, 0, 0].tolist() == [0.0, 3.0]
+    spec = DataSpec(views=(2,), sizes=((32, 48),), targets=2, batch_views=8, procedural_fraction=0.5)
+    source = make_source(f"mix:{tmp_path}", spec, seed=0, holdout=["dtu_scan37"])
+    batch = source(0)
+    assert batch.scenes == 4 and batch.context_images.shape == (8, 3, 32, 48)
+    assert batch.target_images.shape == (8, 3, 32, 48) and batch.target_cameras.num_views == 8
+    keys = {key for index in range(4) for key in source(index).keys}
+    assert "llff_horns" in keys and keys - {"llff_horns"} and "dtu_scan37" not in keys
+    assert source(3).keys == source(3).keys  # deterministic in the index
 
 
 def _cameras(n: int = 2):

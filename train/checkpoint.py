@@ -205,3 +205,40 @@ def _read_index(folder: pathlib.Path) -> dict:
     if index.get("format") != FORMAT:
         raise DataError(f"{file}: unknown checkpoint format {index.get('format')!r}")
     return index
+
+
+def read_weights(source) -> dict[str, torch.Tensor]:
+    """Model weights (float32, CPU) from a checkpoint folder, a run folder's newest checkpoint or a pretrained
+    model file (:func:`codecsplat_warp.model.pretrained.save_pretrained`, e.g. the shipped default).
+
+    Raises:
+        DataError: ``source`` is neither a checkpoint, a run with one nor a readable safetensors file.
+    """
+    source = pathlib.Path(source)
+    if source.is_dir():
+        folder = source if (source / "checkpoint.json").is_file() else latest_checkpoint(source)
+        if folder is None:
+            raise DataError(f"{source}: no checkpoint there (expected a run folder with checkpoints/)")
+        tensors = _read_shards(folder, _read_index(folder)["model"])
+    elif source.is_file():
+        try:
+            tensors = load_file(str(source))
+        except Exception as exc:  # safetensors raises its own error types for a bad header
+            raise DataError(f"{source} is not a readable safetensors file: {exc}") from None
+    else:
+        raise DataError(f"{source} is neither a run folder nor a model file")
+    return {name: t.float() if t.is_floating_point() else t for name, t in tensors.items()}
+
+
+def load_matching_weights(model: torch.nn.Module, tensors: dict[str, torch.Tensor]) -> tuple[list[str], list[str]]:
+    """Copy every tensor whose name and shape ``model`` has (a warm start across architecture changes).
+
+    Returns:
+        (names of the model's tensors left at their initialisation, names of ``tensors`` not used).
+    """
+    state = model.state_dict()
+    used = {name: t for name, t in tensors.items() if name in state and state[name].shape == t.shape}
+    with torch.no_grad():
+        for name, tensor in used.items():
+            state[name].copy_(tensor)
+    return sorted(set(state) - set(used)), sorted(set(tensors) - set(used))

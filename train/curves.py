@@ -26,8 +26,15 @@ from .validate import read_metrics
 
 
 def throughput(records: list[dict]) -> float | None:
-    """Scenes per second between the first and the last record (None without ``elapsed_s``/``scenes``)."""
+    """Scenes per second: the median of the logged ``scenes_per_s`` (robust to a chunk's start-up and to resumed
+    chunks); for older logs without it, between the first and the last record of the last chunk (``elapsed_s``
+    restarts with every resumed chunk). None without ``elapsed_s``/``scenes``."""
+    rates = [r["scenes_per_s"] for r in records if "scenes_per_s" in r]
+    if rates:
+        return statistics.median(rates)
     timed = [r for r in records if "elapsed_s" in r and "scenes" in r]
+    restarts = [i for i in range(1, len(timed)) if timed[i]["elapsed_s"] < timed[i - 1]["elapsed_s"]]
+    timed = timed[restarts[-1]:] if restarts else timed
     if len(timed) < 2 or timed[-1]["elapsed_s"] <= timed[0]["elapsed_s"]:
         return None
     scenes = sum(r["scenes"] for r in timed[1:]) / len(timed[1:]) * (timed[-1]["step"] - timed[0]["step"])

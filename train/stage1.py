@@ -1,14 +1,23 @@
 """Stage-1 training (paper §3.5): the codec-free CodecSplat generator, rendered at target views.
 
-Loss: MSE + 0.05 * LPIPS-VGG between rendered and true target images. AdamW (lr 1e-4, weight decay 0.01),
-linear warm-up then cosine decay to 10 %, gradient-norm clipping, bf16 autocast on CUDA (fp32 on CPU).
-Resumable checkpoints (see :mod:`train.checkpoint`), TensorBoard logs and a tqdm bar under ``--out``.
+Loss: MSE + 0.05 * LPIPS-VGG between rendered and true target images (Eq. 12), plus the decoder depth
+head's auxiliary ``depth_aux_weight * |S_aux - S_enc|_1`` on detached inputs (it trains only that head, so
+that stage 2 starts with one; see :class:`codecsplat_warp.model.CodecSplat`). AdamW (lr 1e-4, weight decay
+0.01), linear warm-up then cosine decay to 10 %, gradient-norm clipping, bf16 autocast on CUDA (fp32 on
+CPU). Resumable checkpoints (see :mod:`train.checkpoint`), TensorBoard logs and a tqdm bar under ``--out``.
 
     python -m train.stage1 --preset re10k --data procedural --steps 100000 --out runs/stage1-re10k
-    torchrun --nproc_per_node 4 -m train.stage1 ...        # DDP, one scene per GPU per step
+    torchrun --nproc_per_node 4 -m train.stage1 ...        # DDP, one batch per GPU per step
 
-The global batch is ``world_size * accumulate`` scenes per optimiser step: ``--accumulate 2`` on one GPU
-sees the same scenes per step as two DDP processes (sample ``(step * accumulate + micro) * world + rank``).
+Batches (:mod:`train.data`): ``--views 2,3,4,6,8 --sizes 256x256,256x448`` draws a context view count and an
+image size per batch, and ``--batch-views 8`` fills a batch with as many scenes as have 8 context views
+between them (4 scenes of 2 views, 1 of 8); the default is one scene at the preset's view count and size.
+``--mono vgg16`` adds the frozen ImageNet VGG16 prior (weights from ``--mono-weights``, default
+``lpips_vgg.safetensors`` in the LPIPS weights folder) and ``--init RUN_OR_MODEL_FILE`` warm-starts from the
+weights of a run or a model file whose names and shapes match (the shipped default, say).
+
+The global batch is ``world_size * accumulate`` batches per optimiser step: ``--accumulate 2`` on one GPU
+sees the same batches per step as two DDP processes (batch ``(step * accumulate + micro) * world + rank``).
 
 Rerunning the same command after an interruption continues from the last checkpoint. SIGTERM (or
 ``--time-limit-s``) ends a run cleanly after the current step, with a checkpoint of that step.
@@ -18,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import math
 import os
@@ -36,10 +46,12 @@ from tqdm import tqdm
 from codecsplat_warp.device import resolve_device
 from codecsplat_warp.errors import CodecSplatError, InputError
 from codecsplat_warp.metrics import LPIPS, WEIGHTS_ENV
-from codecsplat_warp.model import CodecSplat, ModelConfig, get_preset
+from codecsplat_warp.metrics.image import psnr
+from codecsplat_warp.model import CodecSplat, Gaussians, ModelConfig, get_preset
 
-from .checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
-from .data import Source, StepDataset, TrainingSample, make_source
+from .checkpoint import (latest_checkpoint, load_checkpoint, load_matching_weights, read_weights,
+                         save_checkpoint)
+from .data import BatchSource, DataSpec, StepDataset, TrainingBatch, make_source, parse_sizes, parse_views
 
 REPO_ROOT = pathlib.Path(__file__).resolve().parents[1]
 DEFAULT_LPIPS_DIR = REPO_ROOT.parent / "shared" / "weights"
@@ -69,12 +81,23 @@ class TrainConfig:
     workers: int = 4
     time_limit_s: float = 0.0
     accumulate: int = 1
+    views: str = ""
+    sizes: str = ""
+    batch_views: int = 0
+    procedural_fraction: float = 0.5
+    photo_textures: int = 0
+    photometric: int = 0
+    mono: str = ""
+    mono_weights: str = ""
+    init: str = ""
+    depth_aux_weight: float = 0.1
 
 
-LOGGED = ("loss", "mse", "lpips", "psnr", "grad_norm", "lr")
+LOGGED = ("loss", "mse", "lpips", "psnr", "depth_aux", "grad_norm", "lr")
 """Training metrics written every ``log_every`` steps (TensorBoard and :data:`METRICS_FILE`), averaged over the
-step's scenes (micro-batches and DDP ranks); each record also has ``step``, ``elapsed_s`` (wall seconds since
-this process started training, resumed chunks restart it) and ``scenes`` (global scenes per step)."""
+step's batches (micro-batches and DDP ranks); each record also has ``step``, ``elapsed_s`` (wall seconds since
+this process started training, resumed chunks restart it), ``scenes`` (global scenes in the record's step)
+and ``scenes_per_s`` (global scenes per second since the previous record)."""
 
 METRICS_FILE = "metrics.jsonl"
 """One JSON object per logged step under the run folder (read by :mod:`train.validate` for curves)."""
@@ -101,27 +124,38 @@ def lr_factor(step: int, warmup: int, total: int) -> float:
     return 0.1 + 0.9 * 0.5 * (1.0 + math.cos(math.pi * progress))
 
 
-def psnr(prediction: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """Mean PSNR (dB) over images [B,3,H,W] in [0,1]."""
-    mse = ((prediction.float() - target.float()) ** 2).mean(dim=(1, 2, 3)).clamp_min(1e-10)
-    return (-10.0 * torch.log10(mse)).mean()
+def render_targets(model: CodecSplat, gaussians: Gaussians, batch: TrainingBatch) -> torch.Tensor:
+    """[S*T,3,H,W]: each scene's Gaussians (view-major, see ``CodecSplat.forward(scenes=...)``) rendered into
+    that scene's target cameras."""
+    per_scene = gaussians.split(batch.scenes)
+    return torch.cat([model.render(g, cameras)["rgb"] for g, cameras in zip(per_scene, batch.scene_targets())])
 
 
-def stage1_loss(model: torch.nn.Module, lpips: LPIPS, sample: TrainingSample, lpips_weight: float) -> tuple[torch.Tensor, dict]:
-    """Eq. 12 with D_render = MSE + lpips_weight * LPIPS-VGG; returns (loss, float metrics).
+def render_distortion(rgb: torch.Tensor, target: torch.Tensor, lpips: LPIPS, lpips_weight: float) -> dict:
+    """D_render = MSE + lpips_weight * LPIPS-VGG of renders [B,3,H,W] against targets, with its parts and the
+    mean PSNR (detached) as 0-dim tensors: ``render``, ``mse``, ``lpips``, ``psnr``."""
+    mse = F.mse_loss(rgb, target)
+    perceptual = lpips(rgb, target).mean()
+    return {"render": mse + lpips_weight * perceptual, "mse": mse, "lpips": perceptual,
+            "psnr": psnr(rgb.detach(), target).mean()}
+
+
+def stage1_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBatch, config: "TrainConfig") -> tuple[torch.Tensor, dict]:
+    """Eq. 12 with D_render = MSE + lpips_weight * LPIPS-VGG, plus the depth head's auxiliary; returns (loss,
+    metrics as detached 0-dim tensors, read back only when logged).
 
     ``model`` may be the DDP wrapper; rendering uses the bare module.
     """
     bare = model.module if hasattr(model, "module") else model
-    device = sample.context_images.device
+    device = batch.context_images.device
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda"):
-        out = model(sample.context_images, sample.context_cameras)
-    rgb = bare.render(out["gaussians"], sample.target_cameras)["rgb"]
-    mse = F.mse_loss(rgb, sample.target_images)
-    perceptual = lpips(rgb, sample.target_images).mean()
-    loss = mse + lpips_weight * perceptual
-    return loss, {"loss": loss.item(), "mse": mse.item(), "lpips": perceptual.item(),
-                  "psnr": float(psnr(rgb.detach(), sample.target_images))}
+        out = model(batch.context_images, batch.context_cameras, scenes=batch.scenes)
+    parts = render_distortion(render_targets(bare, out["gaussians"], batch), batch.target_images, lpips,
+                              config.lpips_weight)
+    depth_aux = (out["S_aux"].float() - out["S_enc"].detach().float()).abs().mean()
+    loss = parts["render"] + config.depth_aux_weight * depth_aux
+    return loss, {"loss": loss.detach(), "mse": parts["mse"].detach(), "lpips": parts["lpips"].detach(),
+                  "psnr": parts["psnr"], "depth_aux": depth_aux.detach()}
 
 
 def make_optimizer(model: torch.nn.Module, config: TrainConfig):
@@ -133,8 +167,9 @@ def make_optimizer(model: torch.nn.Module, config: TrainConfig):
     return optimizer, scheduler
 
 
-LossFn = Callable[[torch.nn.Module, LPIPS, TrainingSample, TrainConfig, int], tuple[torch.Tensor, dict]]
-"""``loss(model, lpips, sample, config, step) -> (loss, float metrics)`` of one training step."""
+LossFn = Callable[[torch.nn.Module, LPIPS, TrainingBatch, TrainConfig, int], tuple[torch.Tensor, dict]]
+"""``loss(model, lpips, batch, config, step) -> (loss, metrics)`` of one micro-batch; metrics are floats or
+detached 0-dim tensors (read back only on logged steps)."""
 
 
 @dataclass(frozen=True)
@@ -155,31 +190,51 @@ class Stage:
     logged: tuple[str, ...]
 
 
+def build_stage1_model(model_config: ModelConfig, config: TrainConfig) -> CodecSplat:
+    """A codec-free CodecSplat: the mono prior's ImageNet weights loaded (``--mono-weights``), then the
+    ``--init`` warm start (every tensor whose name and shape match) unless the run resumes."""
+    model = CodecSplat(model_config)
+    if model.mvenc.mono_backbone is not None:
+        model.mvenc.mono_backbone.load_imagenet(config.mono_weights or pathlib.Path(_lpips_dir(config)) /
+                                                "lpips_vgg.safetensors")
+    if config.init and latest_checkpoint(config.out) is None:
+        kept, _ = load_matching_weights(model, read_weights(config.init))
+        print(f"stage1: warm start from {config.init}; not in it (kept as built): {', '.join(kept) or 'nothing'}")
+    return model
+
+
 STAGE1 = Stage(
-    "stage1", lambda model_config, config: CodecSplat(model_config),
-    lambda model, lpips, sample, config, step: stage1_loss(model, lpips, sample, config.lpips_weight), LOGGED)
+    "stage1", build_stage1_model,
+    lambda model, lpips, batch, config, step: stage1_loss(model, lpips, batch, config), LOGGED)
 
 
-def train_step(model, lpips, optimizer, scheduler, samples: list[TrainingSample], config: TrainConfig,
+def train_step(model, lpips, optimizer, scheduler, batches: list[TrainingBatch], config: TrainConfig,
                step: int = 0, stage: Stage = STAGE1) -> dict:
-    """One optimisation step over ``samples`` (micro-batches, gradients accumulated; DDP all-reduces only on
+    """One optimisation step over ``batches`` (micro-batches, gradients accumulated; DDP all-reduces only on
     the last one): forward, backward of the mean loss, clip, AdamW, scheduler; returns the metrics averaged
-    over the micro-batches (``grad_norm`` and ``lr`` of the step)."""
+    over the micro-batches (``grad_norm`` and ``lr`` of the step; tensors are not read back here)."""
     optimizer.zero_grad(set_to_none=True)
-    totals: dict[str, float] = {}
-    for index, sample in enumerate(samples):
-        last = index == len(samples) - 1
+    totals: dict = {}
+    for index, batch in enumerate(batches):
+        last = index == len(batches) - 1
         sync = contextlib.nullcontext() if last or not hasattr(model, "no_sync") else model.no_sync()
         with sync:
-            loss, metrics = stage.loss(model, lpips, sample, config, step)
-            (loss / len(samples)).backward()
+            loss, metrics = stage.loss(model, lpips, batch, config, step)
+            (loss / len(batches)).backward()
         for name, value in metrics.items():
-            totals[name] = totals.get(name, 0.0) + value / len(samples)
-    totals["grad_norm"] = float(torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip))
+            totals[name] = totals.get(name, 0.0) + value / len(batches)
+    totals["grad_norm"] = torch.nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
     optimizer.step()
     scheduler.step()
     totals["lr"] = scheduler.get_last_lr()[0]
     return totals
+
+
+def read_metrics_back(metrics: dict) -> dict[str, float]:
+    """``metrics`` with every tensor read back as a float (one device-to-host copy for all of them)."""
+    names = [name for name, value in metrics.items() if isinstance(value, torch.Tensor)]
+    values = torch.stack([metrics[name].detach().float().reshape(()) for name in names]).tolist() if names else []
+    return {**{k: v for k, v in metrics.items() if k not in names}, **dict(zip(names, values))}
 
 
 def mean_over_ranks(metrics: dict[str, float], world: int, device: torch.device) -> dict[str, float]:
@@ -210,15 +265,32 @@ def _lpips_dir(config: TrainConfig) -> str:
     return os.environ.get(WEIGHTS_ENV) or str(DEFAULT_LPIPS_DIR)
 
 
-def train(config: TrainConfig, source: Source | None = None, model_config: ModelConfig | None = None,
+def data_spec(config: TrainConfig, model_config: ModelConfig) -> DataSpec:
+    """The batch drawing of ``config`` (``--views``, ``--sizes``, ``--batch-views`` and the augmentation flags);
+    unset ones default to one scene at the model preset's view count and size."""
+    base = DataSpec.of_model(model_config)
+    return DataSpec(views=parse_views(config.views) if config.views else base.views,
+                    sizes=parse_sizes(config.sizes) if config.sizes else base.sizes, targets=base.targets,
+                    batch_views=config.batch_views or base.batch_views,
+                    procedural_fraction=config.procedural_fraction, photo_textures=bool(config.photo_textures),
+                    photometric=bool(config.photometric))
+
+
+def stage1_model_config(config: TrainConfig) -> ModelConfig:
+    """The ``--preset`` sizes with ``--mono`` (when given) in the mono slot."""
+    preset = get_preset(config.preset)
+    return dataclasses.replace(preset, mono=config.mono) if config.mono else preset
+
+
+def train(config: TrainConfig, source: BatchSource | None = None, model_config: ModelConfig | None = None,
           progress: bool = True, stage: Stage = STAGE1) -> dict:
     """Run (or resume) stage 1 until ``config.steps``; returns the metrics of the last step run
     (with ``step`` and ``resumed_from``, the step of the checkpoint it started from; empty if none was run).
 
     Args:
         config: options; ``config.out`` holds checkpoints, TensorBoard logs and ``config.json``.
-        source: sample source (default: :func:`train.data.make_source` of ``config.data``).
-        model_config: network sizes (default: the ``config.preset`` preset).
+        source: batch source (default: :func:`train.data.make_source` of ``config.data``).
+        model_config: network sizes (default: :func:`stage1_model_config`).
         progress: show a tqdm bar on rank 0.
         stage: model, loss and logged metrics of the stage (default: stage 1).
     """
@@ -226,8 +298,9 @@ def train(config: TrainConfig, source: Source | None = None, model_config: Model
     device = resolve_device(config.device)
     if device.type == "cuda" and world > 1:
         device = torch.device("cuda", local_rank)
-    model_config = model_config or get_preset(config.preset)
-    source = source or make_source(config.data, model_config, config.seed, [n for n in config.holdout.split(",") if n])
+    model_config = model_config or stage1_model_config(config)
+    source = source or make_source(config.data, data_spec(config, model_config), config.seed,
+                                   [n for n in config.holdout.split(",") if n])
     out = pathlib.Path(config.out)
     torch.manual_seed(config.seed + rank)
 
@@ -242,7 +315,7 @@ def train(config: TrainConfig, source: Source | None = None, model_config: Model
         model, device_ids=[local_rank] if device.type == "cuda" else None) if world > 1 else model
 
     loader = _loader(source, start, config.steps, rank, world, config.accumulate,
-                     config.workers if device.type == "cuda" else 0)
+                     config.workers if device.type == "cuda" else 0, pin=device.type == "cuda")
     writer = None
     if rank == 0:
         try:
@@ -257,23 +330,32 @@ def train(config: TrainConfig, source: Source | None = None, model_config: Model
     bar = tqdm(total=config.steps, initial=start, disable=not progress or rank != 0, desc=stage.name, dynamic_ncols=True)
     metrics: dict = {}
     extra = {"train": asdict(config), "model": model_config.to_dict()}
-    began = time.monotonic()
+    began = last_log = time.monotonic()
+    scenes_since_log = 0
     stop_requested = threading.Event()
     previous_handler = signal.signal(signal.SIGTERM, lambda *_: stop_requested.set())
     try:
-        for step, samples in zip(range(start, config.steps), _micro_batches(loader, config.accumulate)):
-            samples = [sample.to(device) for sample in samples]
-            metrics = train_step(trained, lpips, optimizer, scheduler, samples, config, step, stage)
-            metrics.update(step=step + 1, resumed_from=start)
+        for step, batches in zip(range(start, config.steps), _micro_batches(loader, config.accumulate)):
+            batches = [batch.to(device, non_blocking=True) for batch in batches]
+            metrics = train_step(trained, lpips, optimizer, scheduler, batches, config, step, stage)
+            metrics.update(step=step + 1, resumed_from=start, scenes=sum(b.scenes for b in batches))
+            scenes_since_log += metrics["scenes"]
             bar.update(1)
-            bar.set_postfix(loss=f"{metrics['loss']:.4f}", psnr=f"{metrics['psnr']:.2f}")
             if (step + 1) % config.log_every == 0:
-                logged = mean_over_ranks({k: metrics[k] for k in stage.logged if k in metrics}, world, device)
+                metrics = read_metrics_back(metrics)
+                bar.set_postfix(loss=f"{metrics['loss']:.4f}", psnr=f"{metrics['psnr']:.2f}")
+                now = time.monotonic()
+                logged = mean_over_ranks({k: metrics[k] for k in stage.logged if k in metrics}
+                                         | {"scenes": metrics["scenes"], "window_scenes": scenes_since_log}, world, device)
+                window_scenes = logged.pop("window_scenes") * world
+                logged["scenes"] *= world
+                logged["scenes_per_s"] = round(window_scenes / max(now - last_log, 1e-9), 3)
+                last_log, scenes_since_log = now, 0
                 if writer is not None:
                     for name, value in logged.items():
                         writer.add_scalar(f"train/{name}", value, step + 1)
-                    append_metrics(out / METRICS_FILE, {"step": step + 1, **logged, "scenes": world * config.accumulate,
-                                                        "elapsed_s": round(time.monotonic() - began, 3)})
+                    append_metrics(out / METRICS_FILE, {"step": step + 1, **logged,
+                                                        "elapsed_s": round(now - began, 3)})
             stop = stop_requested.is_set() or (config.time_limit_s > 0 and time.monotonic() - began > config.time_limit_s)
             stop = _agree(stop, world, device)
             if (step + 1) % config.checkpoint_every == 0 or step + 1 == config.steps or stop:
@@ -290,7 +372,7 @@ def train(config: TrainConfig, source: Source | None = None, model_config: Model
             writer.close()
         if world > 1:
             dist.destroy_process_group()
-    return metrics
+    return read_metrics_back(metrics)
 
 
 def _agree(stop: bool, world: int, device: torch.device) -> bool:
@@ -302,20 +384,22 @@ def _agree(stop: bool, world: int, device: torch.device) -> bool:
     return bool(flag.item())
 
 
-def _loader(source: Source, start: int, steps: int, rank: int, world: int, accumulate: int, workers: int):
-    """Samples of this rank for steps start..steps-1, ``accumulate`` per step (global index
-    ``(step * accumulate + micro) * world + rank``), prefetched by workers."""
+def _loader(source: BatchSource, start: int, steps: int, rank: int, world: int, accumulate: int, workers: int,
+            pin: bool = False):
+    """Batches of this rank for steps start..steps-1, ``accumulate`` per step (global index
+    ``(step * accumulate + micro) * world + rank``), prefetched by workers (into page-locked memory with ``pin``)."""
     indices = [(step * accumulate + micro) * world + rank for step in range(start, steps) for micro in range(accumulate)]
     dataset = StepDataset(source, steps * accumulate * world)
     return torch.utils.data.DataLoader(dataset, sampler=indices, batch_size=None, num_workers=workers,
-                                       persistent_workers=False, prefetch_factor=2 if workers else None)
+                                       persistent_workers=False, prefetch_factor=4 if workers else None,
+                                       pin_memory=pin)
 
 
 def _micro_batches(loader, accumulate: int):
-    """Groups of ``accumulate`` consecutive samples of ``loader`` (one group per optimiser step)."""
+    """Groups of ``accumulate`` consecutive batches of ``loader`` (one group per optimiser step)."""
     group = []
-    for sample in loader:
-        group.append(sample)
+    for batch in loader:
+        group.append(batch)
         if len(group) == accumulate:
             yield group
             group = []

@@ -1,17 +1,26 @@
 """Stage-2 training (paper §3.5, Eqs. 11-13): the codec, decoder depth head and post-codec refiner.
 
-Initialised from a stage-1 run (``--init``); everything else is frozen. Per step, lambda is drawn
+Initialised from a stage-1 run (``--init``): the backbone, the GS head and the decoder depth head (which
+stage 1 trained as an auxiliary on F_c) are copied, and the post-codec refiner R_post starts as a copy of
+the pre-codec refiner R_pre (same shapes, same job on a feature that should look like F_c). ``--codec-init
+MODEL_FILE_OR_RUN`` warm-starts the latent codec from another model's (the shipped default, say). Only the
+codec, the depth head and R_post train; everything else is frozen. Per step, lambda is drawn
 log-uniformly from [16, 1024] and the loss is
 
-    (lambda / 1024) * [D_render + gamma * |S - S_enc|_1] + beta * R
+    (lambda / 1024) * [D_render + gamma * |S - S_enc|_1 + alpha(step) * |F^_c - F_c|^2 / |F_c|^2] + beta * R
 
 with D_render = MSE + 0.05 LPIPS-VGG (as in stage 1), S the decoder's normalised inverse depth (Eq. 7),
 S_enc the encoder's (Eq. 13), gamma = 0.1 and R the estimated rate in bits per context pixel (Eq. 6
-divided by V*H*W: D_render is a per-pixel mean, and the paper's beta only balances it in these units).
-beta defaults to 1e-4 for the dl3dv preset and 4e-4 otherwise (RE10K). Over the first
+divided by the batch's V*H*W: D_render is a per-pixel mean, and the paper's beta only balances it in these
+units). beta defaults to 1e-4 for the dl3dv preset and 4e-4 otherwise (RE10K). Over the first
 ``--rate-warmup-steps`` steps beta ramps up linearly from 0 (rate annealing): a fresh codec's decoder cannot
 use its latents yet, and a full rate penalty from the start drives every latent to the prior (posterior
 collapse) before it learns to.
+
+The alpha term is a documented deviation from the paper (Eq. 12 has no feature term): the relative squared
+error of the decoded feature against the frozen encoder's F_c, weighted ``--feature-weight`` at the first
+step and falling linearly to ``--feature-weight-final`` over ``--feature-decay-steps``. It gives the codec a
+dense target from the first step, where the render loss alone reaches it only through the frozen GS head.
 
 Every ``--coded-every`` steps the current scene is also really encoded (eval mode): the log then holds the
 coded feature bits, the discrete model's estimate of them (``rate_gap`` = coded / estimate - 1, the
@@ -31,7 +40,6 @@ from dataclasses import dataclass
 
 import torch
 import torch.distributed as dist
-from torch.nn import functional as F
 
 from codecsplat_warp.codec import LAMBDA_MAX, LAMBDA_MIN
 from codecsplat_warp.errors import DataError, InputError
@@ -39,16 +47,16 @@ from codecsplat_warp.metrics import LPIPS
 from codecsplat_warp.model import CodecSplat, ModelConfig
 
 from . import stage1
-from .checkpoint import latest_checkpoint, load_model_weights
-from .data import Source, TrainingSample
+from .checkpoint import latest_checkpoint, load_model_weights, read_weights
+from .data import BatchSource, TrainingBatch
 
 RATE_WEIGHTS = {"dl3dv": 1e-4}
 """beta of a preset (by ModelConfig.name); others use :data:`DEFAULT_RATE_WEIGHT` (the paper's RE10K value)."""
 
 DEFAULT_RATE_WEIGHT = 4e-4
 
-LOGGED = ("loss", "mse", "lpips", "psnr", "depth_l1", "lambda", "bits", "bpp", "grad_norm", "lr",
-          "coded_bits", "coded_estimate_bits", "rate_gap", "train_rate_gap")
+LOGGED = ("loss", "mse", "lpips", "psnr", "depth_l1", "feature_error", "feature_weight", "lambda", "bits", "bpp",
+          "grad_norm", "lr", "coded_bits", "coded_estimate_bits", "rate_gap", "train_rate_gap")
 """Metrics written every ``log_every`` steps (the coded_* ones only on steps that encode)."""
 
 
@@ -66,6 +74,10 @@ class Stage2Config(stage1.TrainConfig):
     beta: float | None = None
     rate_warmup_steps: int = 5000
     coded_every: int = 200
+    codec_init: str = ""
+    feature_weight: float = 0.0
+    feature_weight_final: float = 0.0
+    feature_decay_steps: int = 1
 
 
 def rate_weight(config: Stage2Config, model_config: ModelConfig) -> float:
@@ -78,6 +90,12 @@ def rate_ramp(step: int, warmup: int) -> float:
     return min(1.0, (step + 1) / warmup) if warmup > 0 else 1.0
 
 
+def feature_weight(config: Stage2Config, step: int) -> float:
+    """alpha at ``step``: linear from ``feature_weight`` to ``feature_weight_final`` over ``feature_decay_steps``."""
+    t = min(1.0, step / max(1, config.feature_decay_steps))
+    return config.feature_weight + t * (config.feature_weight_final - config.feature_weight)
+
+
 def sample_lambda(seed: int, step: int, rank: int) -> float:
     """Lambda of a step, log-uniform in [LAMBDA_MIN, LAMBDA_MAX], a function of (seed, step, rank) only."""
     generator = torch.Generator().manual_seed((seed * 1_000_003 + step) * 1009 + rank)
@@ -85,56 +103,65 @@ def sample_lambda(seed: int, step: int, rank: int) -> float:
     return math.exp(math.log(LAMBDA_MIN) + u * (math.log(LAMBDA_MAX) - math.log(LAMBDA_MIN)))
 
 
-def stage2_loss(model: torch.nn.Module, lpips: LPIPS, sample: TrainingSample, config: Stage2Config,
+def stage2_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBatch, config: Stage2Config,
                 step: int) -> tuple[torch.Tensor, dict]:
-    """Eq. 12 for one scene at a lambda drawn for ``step``; returns (loss, float metrics).
+    """Eq. 12 (plus the feature term, see the module docstring) for one batch at a lambda drawn for ``step``;
+    returns (loss, metrics as floats or detached 0-dim tensors).
 
     ``model`` may be the DDP wrapper; rendering and the coded-rate check use the bare module.
     """
     bare = model.module if hasattr(model, "module") else model
     rank = dist.get_rank() if dist.is_initialized() else 0
     lam = sample_lambda(config.seed, step, rank)
-    images, cameras = sample.context_images, sample.context_cameras
+    images, cameras = batch.context_images, batch.context_cameras
     device = images.device
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda"):
-        out = model(images, cameras, lam=lam)
-    rgb = bare.render(out["gaussians"], sample.target_cameras)["rgb"]
-    mse = F.mse_loss(rgb, sample.target_images)
-    perceptual = lpips(rgb, sample.target_images).mean()
+        out = model(images, cameras, lam=lam, scenes=batch.scenes)
+    parts = stage1.render_distortion(stage1.render_targets(bare, out["gaussians"], batch), batch.target_images,
+                                     lpips, config.lpips_weight)
     depth_l1 = (out["S"].float() - out["S_enc"].detach().float()).abs().mean()
+    target = out["F_c"].detach().float()
+    feature_error = (out["F_hat"].float() - target).square().mean() / target.square().mean().clamp_min(1e-12)
+    alpha = feature_weight(config, step)
     bpp = out["rate_bits"] / images[:, 0].numel()
-    distortion = mse + config.lpips_weight * perceptual + config.gamma * depth_l1
+    distortion = parts["render"] + config.gamma * depth_l1 + alpha * feature_error
     beta = rate_weight(config, bare.config) * rate_ramp(step, config.rate_warmup_steps)
     loss = lam / LAMBDA_MAX * distortion + beta * bpp
-    metrics = {"loss": loss.item(), "mse": mse.item(), "lpips": perceptual.item(), "depth_l1": depth_l1.item(),
-               "psnr": float(stage1.psnr(rgb.detach(), sample.target_images)), "lambda": lam,
-               "bits": out["rate_bits"].item(), "bpp": bpp.item()}
+    metrics = {"loss": loss.detach(), "mse": parts["mse"].detach(), "lpips": parts["lpips"].detach(),
+               "depth_l1": depth_l1.detach(), "psnr": parts["psnr"], "feature_error": feature_error.detach(),
+               "feature_weight": alpha, "lambda": lam, "bits": out["rate_bits"].detach() / batch.scenes,
+               "bpp": bpp.detach()}
     if (step + 1) % config.coded_every == 0:
-        metrics.update(coded_rate(bare, sample, lam, metrics["bits"]))
+        metrics.update(coded_rate(bare, batch, lam, float(out["rate_bits"].detach())))
     return loss, metrics
 
 
 @torch.no_grad()
-def coded_rate(model: CodecSplat, sample: TrainingSample, lam: float, training_bits: float) -> dict:
-    """Really encode the sample's context views at ``lam`` (eval mode) and compare with the rate estimates."""
+def coded_rate(model: CodecSplat, batch: TrainingBatch, lam: float, training_bits: float) -> dict:
+    """Really encode the batch's first scene at ``lam`` (eval mode) and compare with the rate estimates
+    (``training_bits``: the step's noisy estimate for the whole batch)."""
     was_training = model.training
     model.eval()
+    views = batch.context_images.shape[0] // batch.scenes
     try:
-        encoded = model.encode_scene(sample.context_images, sample.context_cameras, lam)
+        encoded = model.encode_scene(batch.context_images[:views], batch.context_cameras.select(slice(0, views)), lam)
     finally:
         model.train(was_training)
     coded = 8.0 * sum(encoded.feature_bytes)
     estimate = float(encoded.estimated_bits.sum())
     return {"coded_bits": coded, "coded_estimate_bits": estimate, "rate_gap": coded / estimate - 1.0,
-            "train_rate_gap": coded / training_bits - 1.0}
+            "train_rate_gap": coded * batch.scenes / training_bits - 1.0}
 
 
 def build_stage2_model(model_config: ModelConfig, config: Stage2Config) -> CodecSplat:
-    """A CodecSplat with its codec: backbone from the stage-1 run ``config.init`` (unless ``config.out``
-    already has a checkpoint to resume), only the stage-2 modules trainable."""
+    """A CodecSplat with its codec: backbone, heads and R_post from the stage-1 run ``config.init`` and the
+    codec from ``config.codec_init`` (unless ``config.out`` already has a checkpoint to resume); only the
+    stage-2 modules trainable."""
     model = CodecSplat(model_config, codec=True)
     if latest_checkpoint(config.out) is None:
         load_stage1_weights(model, config.init)
+        if config.codec_init:
+            load_codec_weights(model, config.codec_init)
     model.requires_grad_(False)
     for module in model.codec_modules():
         module.requires_grad_(True)
@@ -142,8 +169,9 @@ def build_stage2_model(model_config: ModelConfig, config: Stage2Config) -> Codec
 
 
 def load_stage1_weights(model: CodecSplat, run) -> None:
-    """Copy the newest checkpoint of the stage-1 run ``run`` into ``model``'s backbone (its stage-2 modules keep
-    their initialisation). Raises DataError when ``run`` has no stage-1 checkpoint."""
+    """Copy the newest checkpoint of the stage-1 run ``run`` into ``model``'s backbone and heads, and its
+    pre-codec refiner into the post-codec refiner too (the latent codec keeps its initialisation).
+    Raises DataError when ``run`` has no stage-1 checkpoint of this model."""
     folder = latest_checkpoint(run)
     if folder is None:
         raise DataError(f"--init {run}: no checkpoint there (expected a stage-1 run folder with checkpoints/)")
@@ -153,6 +181,18 @@ def load_stage1_weights(model: CodecSplat, run) -> None:
     except RuntimeError as exc:
         raise DataError(f"--init {folder} is not a stage-1 checkpoint of this model: {exc}") from None
     model.load_state_dict(backbone.state_dict(), strict=False)  # the backbone's keys are a subset of the model's
+    model.refine_post.load_state_dict(backbone.refine_pre.state_dict())
+
+
+def load_codec_weights(model: CodecSplat, source) -> None:
+    """Copy the latent codec of a model file or run (``codec.*`` tensors) into ``model``.
+    Raises DataError when the source has no codec of this model's shapes."""
+    prefix = "codec."
+    tensors = {k[len(prefix):]: v for k, v in read_weights(source).items() if k.startswith(prefix)}
+    try:
+        model.codec.load_state_dict(tensors)
+    except RuntimeError as exc:
+        raise DataError(f"--codec-init {source} holds no latent codec of this model's shapes: {exc}") from None
 
 
 def run_model_config(config: Stage2Config) -> ModelConfig:
@@ -167,7 +207,7 @@ def run_model_config(config: Stage2Config) -> ModelConfig:
 STAGE2 = stage1.Stage("stage2", build_stage2_model, stage2_loss, LOGGED)
 
 
-def train(config: Stage2Config, source: Source | None = None, progress: bool = True) -> dict:
+def train(config: Stage2Config, source: BatchSource | None = None, progress: bool = True) -> dict:
     """Run (or resume) stage 2 until ``config.steps``; see :func:`train.stage1.train` for the rest."""
     return stage1.train(config, source, run_model_config(config), progress, stage=STAGE2)
 
@@ -175,8 +215,8 @@ def train(config: Stage2Config, source: Source | None = None, progress: bool = T
 def parse_args(argv: list[str] | None = None) -> Stage2Config:
     """Command line -> :class:`Stage2Config` (every field is a flag)."""
     config = stage1.parse_args(argv, Stage2Config, "python -m train.stage2", __doc__.split("\n\n")[0])
-    if config.coded_every < 1 or config.rate_warmup_steps < 0:
-        raise InputError("--coded-every must be >= 1 and --rate-warmup-steps >= 0")
+    if config.coded_every < 1 or config.rate_warmup_steps < 0 or config.feature_decay_steps < 1:
+        raise InputError("--coded-every and --feature-decay-steps must be >= 1 and --rate-warmup-steps >= 0")
     return config
 
 

@@ -1,14 +1,14 @@
-"""Held-out validation of a stage-1 run and its training curve.
+"""Held-out validation of a training run: codec-free target-view PSNR on fixed held-out samples.
 
-For each held-out real scene, a fixed set of samples (anchor view, nearest context views, targets in
-between; see :func:`codecsplat_warp.data.split_context_targets`) is rendered by the run's latest checkpoint and
-compared with the "copy the nearest context view" baseline (the context image whose camera centre is
-closest to the target's, returned unchanged). PSNR on [0,1]-clipped images.
+The samples are the entries of an evaluation index file (scene folder -> context and target frames, e.g.
+``train/heldout/index-re10k.json``) under ``--data``, preprocessed to the ``--protocol`` size as
+``codecsplat eval`` does (:func:`codecsplat_warp.evaluate.index_samples`). Each is rendered by the run's
+latest checkpoint and compared with the "copy the nearest context view" baseline. PSNR on [0,1]-clipped images.
 
-    python -m train.validate --run runs/stage1 --data DIR --scenes a,b,c,d --out runs/stage1/validation.json
+    python -m train.validate --run runs/stage1 --data DIR --index train/heldout/index-re10k.json --protocol re10k
 
 Writes the JSON summary and ``curve.png`` (training loss and PSNR against step, with the held-out PSNR of
-the model and of the baseline) next to it.
+the model and of the baseline) next to it (default ``RUN/validation-PROTOCOL.json``).
 """
 
 from __future__ import annotations
@@ -23,11 +23,11 @@ from tqdm import tqdm
 
 from codecsplat_warp.device import resolve_device
 from codecsplat_warp.errors import InputError
+from codecsplat_warp.evaluate import PROTOCOLS, Sample, find_scenes, index_samples, nearest_context_images
 from codecsplat_warp.metrics.image import psnr
 from codecsplat_warp.model import CodecSplat, ModelConfig
 
-from .checkpoint import latest_checkpoint, load_model_weights
-from .data import TrainingSample, real_scene_source
+from .checkpoint import latest_checkpoint, read_weights
 from .stage1 import METRICS_FILE
 
 
@@ -41,35 +41,29 @@ class SceneScore:
     nearest_view_psnr: float
 
 
-def nearest_context_images(sample: TrainingSample) -> torch.Tensor:
-    """[T,3,H,W] for each target, the context image whose camera centre is nearest to the target's."""
-    distance = torch.cdist(sample.target_cameras.centers.double(), sample.context_cameras.centers.double())
-    return sample.context_images[distance.argmin(dim=1)]
-
-
 @torch.no_grad()
-def score_scene(model: CodecSplat, root, scene: str, samples: int, device: torch.device) -> SceneScore:
-    """Model and nearest-view PSNR on ``samples`` deterministic samples of one scene."""
-    source = real_scene_source(model.config, root, seed=12345, scene_names=[scene])
-    model_scores, baseline_scores = [], []
-    for index in range(samples):
-        sample = source(index).to(device)
+def score_sample(model: CodecSplat, sample: Sample, device: torch.device) -> SceneScore:
+    """Codec-free model and nearest-view PSNR of one sample."""
+    sample = sample.to(device)
+    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda"):
         gaussians = model(sample.context_images, sample.context_cameras)["gaussians"]
-        rgb = model.render(gaussians, sample.target_cameras)["rgb"]
-        model_scores.append(float(psnr(rgb, sample.target_images).mean()))
-        baseline_scores.append(float(psnr(nearest_context_images(sample), sample.target_images).mean()))
-    return SceneScore(scene, samples, sum(model_scores) / samples, sum(baseline_scores) / samples)
+    rgb = model.render(gaussians, sample.target_cameras)["rgb"]
+    nearest = nearest_context_images(sample.context_images, sample.context_cameras, sample.target_cameras)
+    return SceneScore(sample.scene, 1, float(psnr(rgb, sample.target_images).mean()),
+                      float(psnr(nearest, sample.target_images).mean()))
 
 
-def load_run(run: pathlib.Path, device: torch.device) -> tuple[CodecSplat, int]:
-    """The model of a run's latest checkpoint (sizes from its ``config.json``) and the checkpoint's step."""
-    checkpoint = latest_checkpoint(run)
-    if checkpoint is None:
-        raise InputError(f"no checkpoint under {run}/checkpoints")
-    config = json.loads((run / "config.json").read_text())
-    model = CodecSplat(ModelConfig.from_dict(config["model"]))
-    index = load_model_weights(checkpoint, model)
-    return model.to(device).eval(), int(index["step"])
+def load_run(run: pathlib.Path, device, step: int | None = None) -> tuple[CodecSplat, int]:
+    """The model of a run's newest checkpoint, or of its checkpoint after ``step`` (sizes from the run's
+    ``config.json``; with its codec when the checkpoint has one), and the checkpoint's step."""
+    checkpoint = latest_checkpoint(run) if step is None else run / "checkpoints" / f"step-{step:08d}"
+    if checkpoint is None or not (checkpoint / "checkpoint.json").is_file():
+        raise InputError(f"no checkpoint {'' if step is None else f'of step {step} '}under {run}/checkpoints")
+    config = ModelConfig.from_dict(json.loads((run / "config.json").read_text())["model"])
+    weights = read_weights(checkpoint)
+    model = CodecSplat(config, codec=any(name.startswith("codec.") for name in weights))
+    model.load_state_dict(weights)
+    return model.to(device).eval(), int(json.loads((checkpoint / "checkpoint.json").read_text())["step"])
 
 
 def read_metrics(run: pathlib.Path) -> list[dict]:
@@ -115,25 +109,26 @@ def plot_curve(records: list[dict], scores: list[SceneScore], step: int, path: p
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m train.validate", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--run", type=pathlib.Path, required=True, help="stage-1 run folder")
+    parser.add_argument("--run", type=pathlib.Path, required=True, help="training run folder")
     parser.add_argument("--data", type=pathlib.Path, required=True, help="folder of real scene folders")
-    parser.add_argument("--scenes", required=True, help="comma-separated held-out scene names")
-    parser.add_argument("--samples", type=int, default=8, help="samples per scene")
+    parser.add_argument("--index", type=pathlib.Path, required=True, help="evaluation index JSON of held-out samples")
+    parser.add_argument("--protocol", choices=[p for p in PROTOCOLS if PROTOCOLS[p].width], default="re10k")
+    parser.add_argument("--step", type=int, help="validate the checkpoint of this step (default: the newest)")
     parser.add_argument("--device", default="auto")
-    parser.add_argument("--out", type=pathlib.Path, help="JSON summary (default RUN/validation.json)")
+    parser.add_argument("--out", type=pathlib.Path, help="JSON summary (default RUN/validation-PROTOCOL.json)")
     args = parser.parse_args(argv)
     device = resolve_device(args.device)
-    model, step = load_run(args.run, device)
-    names = [n for n in args.scenes.split(",") if n]
-    scores = [score_scene(model, args.data, name, args.samples, device) for name in tqdm(names, desc="validate")]
-    out = args.out or args.run / "validation.json"
+    model, step = load_run(args.run, device, args.step)
+    samples = index_samples(find_scenes(args.data), args.index, PROTOCOLS[args.protocol])
+    scores = [score_sample(model, sample, device) for sample in tqdm(samples, desc="validate")]
+    out = args.out or args.run / f"validation-{args.protocol}.json"
     summary = {
-        "step": step, "scenes": [vars(s) for s in scores],
+        "step": step, "protocol": args.protocol, "index": str(args.index), "scenes": [vars(s) for s in scores],
         "model_psnr": sum(s.model_psnr for s in scores) / len(scores),
         "nearest_view_psnr": sum(s.nearest_view_psnr for s in scores) / len(scores),
     }
     out.write_text(json.dumps(summary, indent=1))
-    plot_curve(read_metrics(args.run), scores, step, out.with_name("curve.png"))
+    plot_curve(read_metrics(args.run), scores, step, out.with_suffix(".png"))
     print(f"{'scene':<28}{'model dB':>10}{'nearest dB':>12}")
     for s in scores:
         print(f"{s.scene:<28}{s.model_psnr:>10.2f}{s.nearest_view_psnr:>12.2f}")

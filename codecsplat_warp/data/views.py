@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import json
+import math
 import pathlib
 from dataclasses import dataclass
 
@@ -123,19 +124,61 @@ def _extra_context_views(left: int, right: int, count: int, generator: torch.Gen
     return sorted(int(v) + left + 1 for v in order)
 
 
-def split_context_targets(cameras: Cameras, anchor: int, num_context: int, num_target: int) -> tuple[list[int], list[int]]:
-    """Context and target view indices among the ``num_context + num_target`` views nearest to ``anchor``.
+MAX_VIEW_ANGLE_DEGREES = 45.0
+"""Views whose optical axis turns more than this from the anchor's are not candidates for its context or
+targets (a hand-held outward capture passes close camera centres that look elsewhere)."""
 
-    The views are ordered by camera-centre distance to the anchor; the context takes evenly spaced ranks
-    including the nearest (the anchor) and the farthest, the targets the ranks in between, so targets
-    lie among the context views rather than outside them.
+
+def split_context_targets(cameras: Cameras, anchor: int, num_context: int, num_target: int,
+                          spread: int = 0) -> tuple[list[int], list[int]]:
+    """Context and target view indices around ``anchor``, with the targets between the context views.
+
+    The candidates are the views looking within :data:`MAX_VIEW_ANGLE_DEGREES` of the anchor's direction
+    (all views if fewer than ``num_context + num_target`` do), ordered by camera-centre distance to the
+    anchor. A cluster of the nearest candidates is taken, ``num_context + num_target + spread`` of them to
+    start with: the context is spread over it by farthest-point sampling from the anchor
+    (for 2 views: the anchor and the cluster's farthest view), and the targets are the cluster's other views
+    inside the context's bounding sphere (centred on the context centroid, through the farthest context view),
+    those nearest the centroid first, so that the targets are interpolated, not extrapolated. When too few
+    views lie inside, the cluster grows by one view at a time; a scene with no such split (e.g. targets only
+    beyond the ends of a straight path) gets the last cluster's views in rank order.
+
+    Args:
+        spread: extra views in the first cluster (a wider context baseline; training draws it at random).
+    Raises:
+        DataError: the scene has fewer than ``num_context + num_target`` views.
     """
     total = num_context + num_target
     if cameras.num_views < total:
         raise DataError(f"scene has {cameras.num_views} views, need {total} ({num_context} context + {num_target} target)")
     centers = cameras.centers.double()
-    order = torch.argsort((centers - centers[anchor]).norm(dim=-1), stable=True)[:total].tolist()
+    axes = cameras.c2w[:, :3, 2].double()
+    facing = (axes @ axes[anchor]).clamp(-1.0, 1.0) >= math.cos(math.radians(MAX_VIEW_ANGLE_DEGREES))
+    if int(facing.sum()) < total:
+        facing = torch.ones_like(facing)
+    distance = (centers - centers[anchor]).norm(dim=-1).masked_fill(~facing, float("inf"))
+    order = torch.argsort(distance, stable=True)[:int(facing.sum())].tolist()
+    for size in range(min(total + max(spread, 0), len(order)), len(order) + 1):
+        context, targets = _interpolating_split(centers, order[:size], num_context, num_target)
+        if len(targets) == num_target:
+            return context, targets
     ranks = torch.linspace(0, total - 1, num_context).round().long().tolist()
-    context = [order[r] for r in ranks]
-    targets = [order[r] for r in range(total) if r not in ranks]
-    return context, targets
+    return [order[r] for r in ranks], [order[r] for r in range(total) if r not in ranks]
+
+
+def _interpolating_split(centers: torch.Tensor, cluster: list[int], num_context: int,
+                         num_target: int) -> tuple[list[int], list[int]]:
+    """Farthest-point context from ``cluster[0]`` and up to ``num_target`` targets inside its bounding sphere."""
+    context = [cluster[0]]
+    points = centers[cluster]
+    nearest = (points - points[0]).norm(dim=-1)
+    for _ in range(num_context - 1):
+        nearest[[cluster.index(c) for c in context]] = -1.0
+        pick = int(nearest.argmax())
+        context.append(cluster[pick])
+        nearest = torch.minimum(nearest, (points - points[pick]).norm(dim=-1))
+    centroid = centers[context].mean(dim=0)
+    radius = float((centers[context] - centroid).norm(dim=-1).max())
+    inside = [(float((centers[v] - centroid).norm()), v) for v in cluster if v not in context]
+    targets = [v for d, v in sorted(inside) if d <= radius * (1.0 + 1e-9)]
+    return context, targets[:num_target]

@@ -22,6 +22,7 @@ from torch import nn
 
 from ..device import check_tensor, common_device
 from ..errors import InputError
+from ..model.layers import torchvision_features, vgg16_trunk
 
 WEIGHTS_ENV = "CODECSPLAT_LPIPS_WEIGHTS"
 """Environment variable naming the directory that holds the LPIPS safetensors files."""
@@ -29,15 +30,6 @@ WEIGHTS_ENV = "CODECSPLAT_LPIPS_WEIGHTS"
 SHIFT = (-0.030, -0.088, -0.188)
 SCALE = (0.458, 0.448, 0.450)
 """LPIPS scaling layer: (x - SHIFT) / SCALE for x in [-1,1] (equals ImageNet mean/std normalisation of [0,1])."""
-
-_VGG_LAYERS = (
-    # (conv index, in, out) per stage; a 2x2 max-pool precedes every stage but the first.
-    ((0, 3, 64), (2, 64, 64)),
-    ((5, 64, 128), (7, 128, 128)),
-    ((10, 128, 256), (12, 256, 256), (14, 256, 256)),
-    ((17, 256, 512), (19, 512, 512), (21, 512, 512)),
-    ((24, 512, 512), (26, 512, 512), (28, 512, 512)),
-)
 
 _ALEX_LAYERS = (
     # (conv index, in, out, kernel, stride, padding) per stage; a 3x3 stride-2 max-pool precedes stages 2 and 3.
@@ -49,19 +41,6 @@ _ALEX_LAYERS = (
 )
 
 _FILES = {"vgg": "lpips_vgg.safetensors", "alex": "lpips_alex.safetensors"}
-
-
-def _vgg_trunk() -> nn.ModuleList:
-    stages = []
-    for i, convs in enumerate(_VGG_LAYERS):
-        layers: dict[str, nn.Module] = {}
-        if i > 0:
-            layers["pool"] = nn.MaxPool2d(2, 2)
-        for index, c_in, c_out in convs:
-            layers[str(index)] = nn.Conv2d(c_in, c_out, 3, padding=1)
-            layers[f"relu{index}"] = nn.ReLU()
-        stages.append(nn.Sequential(OrderedDict(layers)))
-    return nn.ModuleList(stages)
 
 
 def _alex_trunk() -> nn.ModuleList:
@@ -103,7 +82,7 @@ class LPIPS(nn.Module):
         if net not in _FILES:
             raise InputError(f"LPIPS net must be one of {', '.join(_FILES)}, got {net!r}")
         self.net = net
-        self.stages = _vgg_trunk() if net == "vgg" else _alex_trunk()
+        self.stages = vgg16_trunk() if net == "vgg" else _alex_trunk()
         channels = [stage[-2].out_channels for stage in self.stages]
         self.lins = nn.ModuleList(nn.Conv2d(c, 1, 1, bias=False) for c in channels)
         self.register_buffer("shift", torch.tensor(SHIFT).reshape(1, 3, 1, 1), persistent=False)
@@ -116,12 +95,7 @@ class LPIPS(nn.Module):
         if not file.is_file():
             raise InputError(f"LPIPS weights file {file} does not exist")
         tensors = load_file(str(file))
-        expected = {}
-        for stage in self.stages:
-            for name, module in stage.named_children():
-                if isinstance(module, nn.Conv2d):
-                    expected[f"features.{name}.weight"] = module.weight
-                    expected[f"features.{name}.bias"] = module.bias
+        expected = torchvision_features(self.stages)
         for i, lin in enumerate(self.lins):
             expected[f"lin{i}.weight"] = lin.weight
         missing = sorted(set(expected) - set(tensors))

@@ -26,13 +26,13 @@ from ..codec.latent import LatentCodec, Timer, check_lambda, no_timer
 from ..codec.scene import DecodedScene, EncodedScene
 from ..device import check_finite, check_tensor, common_device, resolve_device
 from ..errors import BitstreamError, DeviceMismatchError, InputError
-from ..ops.geometry import nearest_views
 from ..ops.raster import rasterize
 from .config import FEATURE_STRIDE, MODEL_STRIDE, ModelConfig
 from .feathead import FeatHead
 from .gaussians import Gaussians, map_to_world
 from .heads import DepthHead, GaussianHead
-from .mvenc import MonoBackbone, MVEnc
+from .mono import build_mono_backbone
+from .mvenc import MonoBackbone, MVEnc, context_neighbours
 from .pretrained import model_id
 from .refine import Refiner
 
@@ -48,20 +48,26 @@ class CodecSplat(nn.Module):
 
     Args:
         config: sizes (see :mod:`.config` presets).
-        mono_backbone: optional pretrained monocular feature extractor (see :class:`.mvenc.MonoBackbone`).
-        codec: add the stage-2 modules (latent codec, decoder depth head, post-codec refiner); a stage-1
-            model has none, so that each of its parameters takes part in the codec-free loss.
+        mono_backbone: optional pretrained monocular feature extractor (see :class:`.mvenc.MonoBackbone`);
+            default: the one ``config.mono`` names (random weights until a state dict or
+            ``load_imagenet`` fills them), or none.
+        codec: add the stage-2 modules (latent codec and post-codec refiner); a stage-1 model has none, so
+            that each of its parameters takes part in the codec-free loss.
+
+    The decoder's depth head exists in both: stage 1 trains it as an auxiliary on the detached F_c
+    (towards the detached S_enc, ``S_aux`` of :meth:`forward` in training mode), so that stage 2 starts
+    from a depth head that already reads depth from the feature it will decode.
     """
 
     def __init__(self, config: ModelConfig, mono_backbone: MonoBackbone | None = None, codec: bool = False):
         super().__init__()
         self.config = config
-        self.mvenc = MVEnc(config, mono_backbone)
+        self.mvenc = MVEnc(config, mono_backbone if mono_backbone is not None else build_mono_backbone(config.mono))
         self.feat_head = FeatHead(config)
         self.refine_pre = Refiner(config)
         self.gs_head = GaussianHead(config)
+        self.depth_head = DepthHead(config)
         self.codec = LatentCodec(config) if codec else None
-        self.depth_head = DepthHead(config) if codec else None
         self.refine_post = Refiner(config) if codec else None
 
     @property
@@ -74,7 +80,7 @@ class CodecSplat(nn.Module):
         self._require_codec()
         return [self.codec, self.depth_head, self.refine_post]
 
-    def forward(self, images: torch.Tensor, cameras: Cameras, lam: float | None = None) -> dict:
+    def forward(self, images: torch.Tensor, cameras: Cameras, lam: float | None = None, scenes: int = 1) -> dict:
         """Run the codec-free path, or with ``lam`` the codec path (stage 2, differentiable).
 
         Args:
@@ -82,26 +88,33 @@ class CodecSplat(nn.Module):
             cameras: the V context cameras, on the model's device.
             lam: None for the codec-free path; a rate-distortion lambda in [16, 1024] for the codec path
                 (noisy quantisation in training mode, the coder's rounding in eval mode).
+            scenes: the V views are this many scenes of V / scenes consecutive views each (a training batch):
+                views attend to, match against and refine with views of their own scene only, and the
+                Gaussians are view-major, so :meth:`Gaussians.split` gives each scene's.
 
         Returns:
             dict with ``F_mv`` [V,C,H/4,W/4], ``P_depth`` [V,D,H/4,W/4], ``F_g`` and ``F_c`` [V,C_F,H/2,W/2],
             ``D_enc`` [V,H,W] (metric, in [near, far]), ``S_enc`` [V,H,W] (Eq. 13, in [0,1]), ``neighbours``
             [V,M] and ``gaussians`` (:class:`Gaussians`, N = V*H*W, float32): codec-free from (F_c, D_enc),
             or with ``lam`` decoded from F^_c; with ``lam`` also ``F_hat`` [V,C_F,H/2,W/2] (F^_c), ``S`` and
-            ``D_hat`` [V,H,W] (decoder depth, Eqs. 7-8) and ``rate_bits`` (scalar, estimated bits of all views).
+            ``D_hat`` [V,H,W] (decoder depth, Eqs. 7-8) and ``rate_bits`` (scalar, estimated bits of all views);
+            codec-free in training mode also ``S_aux`` [V,H,W], the depth head's S on the detached F_c.
 
         Raises:
             InputError: bad shape, dtype, size or values, lambda out of range, ``lam`` without a codec;
             DeviceMismatchError: inputs not on the model's device.
         """
         images = self._check_inputs(images, cameras)
-        enc = self.mvenc(images, cameras)
+        neighbours = context_neighbours(cameras, self.config.neighbours, scenes)
+        enc = self.mvenc(images, cameras, neighbours)
         f_g = self.feat_head(images, enc.features, enc.prob)
         f_c = self.refine_pre(f_g, enc.depth, cameras, enc.neighbours)
         out = {"F_mv": enc.features, "P_depth": enc.prob, "F_g": f_g, "F_c": f_c, "D_enc": enc.depth,
                "S_enc": enc.normalized_depth, "neighbours": enc.neighbours}
         if lam is None:
             out["gaussians"] = self.decode_gaussians(f_c, enc.depth, cameras)
+            if self.training:
+                out["S_aux"] = self.depth_head(f_c.detach(), cameras)[0]
             return out
         self._require_codec()
         coded = self.codec(f_c, lam)
@@ -116,7 +129,7 @@ class CodecSplat(nn.Module):
         nearest views (as MVEnc picks them). Returns (S, D^, Gaussians)."""
         s, depth = self.depth_head(feature, cameras)
         if neighbours is None:
-            neighbours = nearest_views(cameras, min(self.config.neighbours, cameras.num_views - 1)).long()
+            neighbours = context_neighbours(cameras, self.config.neighbours)
         refined = self.refine_post(feature, depth, cameras, neighbours)
         return s, depth, self.decode_gaussians(refined, depth, cameras)
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 
 from ..errors import InputError
+from .mono import MONO_BACKBONES
 
 MODEL_STRIDE = 4
 """Image height and width must be multiples of this (the matching grid is 1/4 resolution)."""
@@ -52,6 +53,8 @@ class ModelConfig:
         codec_latent_channels: channels of each latent level, coarsest first; level l of L sits at stride
             ``2**(L+1-l)`` of the feature grid (the finest at stride 4, i.e. 1/8 of the image).
         lambda_channels: size of the rate embedding e_lambda.
+        mono: pretrained monocular backbone in MVEnc's mono slot: ``"none"`` or a name of
+            :data:`codecsplat_warp.model.mono.MONO_BACKBONES` (``"vgg16"``: frozen ImageNet VGG16 to relu3_3).
     """
 
     name: str = "custom"
@@ -75,6 +78,7 @@ class ModelConfig:
     codec_channels: int = 48
     codec_latent_channels: tuple[int, ...] = (16, 24, 32)
     lambda_channels: int = 64
+    mono: str = "none"
 
     def __post_init__(self) -> None:
         latent = self.codec_latent_channels
@@ -106,6 +110,8 @@ class ModelConfig:
         if not 0 < self.scale_min_px < self.scale_max_px:
             raise InputError(f"ModelConfig needs 0 < scale_min_px < scale_max_px, got "
                              f"{self.scale_min_px}, {self.scale_max_px}")
+        if self.mono != "none" and self.mono not in MONO_BACKBONES:
+            raise InputError(f"ModelConfig.mono must be none or one of {', '.join(MONO_BACKBONES)}, got {self.mono!r}")
         if self.num_views < 2:
             raise InputError(f"ModelConfig.num_views must be >= 2 (matching needs a second view), got {self.num_views}")
 

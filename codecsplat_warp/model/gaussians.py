@@ -70,6 +70,14 @@ class Gaussians:
         """Degree of the SH colours (K = (degree+1)^2)."""
         return round(self.sh.shape[1] ** 0.5) - 1
 
+    def split(self, parts: int) -> "list[Gaussians]":
+        """``parts`` consecutive, equally long pieces (e.g. the Gaussians of each scene of a training batch,
+        whose views are stacked view-major). InputError unless ``parts`` divides the count."""
+        if parts < 1 or len(self) % parts:
+            raise InputError(f"cannot split {len(self)} Gaussians into {parts} equal parts")
+        pieces = {f.name: getattr(self, f.name).chunk(parts) for f in fields(self)}
+        return [Gaussians(**{name: chunks[i] for name, chunks in pieces.items()}) for i in range(parts)]
+
     def detach(self) -> "Gaussians":
         """A copy without autograd history."""
         return Gaussians(**{f.name: getattr(self, f.name).detach() for f in fields(self)})

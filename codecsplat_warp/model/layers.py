@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 
 import torch
 from torch import nn
@@ -67,3 +68,44 @@ def inverse_depth_to_grid(depth: torch.Tensor, height: int, width: int) -> torch
         return depth
     inverse = F.interpolate((1.0 / depth)[:, None], size=(height, width), mode="area")
     return 1.0 / inverse[:, 0]
+
+
+VGG16_STAGES = (
+    # (torchvision conv index, in, out) per stage; a 2x2 max-pool precedes every stage but the first.
+    ((0, 3, 64), (2, 64, 64)),
+    ((5, 64, 128), (7, 128, 128)),
+    ((10, 128, 256), (12, 256, 256), (14, 256, 256)),
+    ((17, 256, 512), (19, 512, 512), (21, 512, 512)),
+    ((24, 512, 512), (26, 512, 512), (28, 512, 512)),
+)
+"""VGG16's convolutions, as ``torchvision.models.vgg16().features`` numbers them (3x3, padding 1, ReLU after each)."""
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+"""Per-channel normalisation of [0,1] RGB images that ImageNet-trained trunks expect."""
+
+
+def vgg16_trunk(stages: int = len(VGG16_STAGES)) -> nn.ModuleList:
+    """The first ``stages`` VGG16 stages (ReLU outputs relu1_2, relu2_2, relu3_3, ... at strides 1, 2, 4, ...),
+    one ``nn.Sequential`` each whose convolutions are named by their torchvision index (``"0"``, ``"2"``, ...)."""
+    trunk = []
+    for i, convs in enumerate(VGG16_STAGES[:stages]):
+        layers: dict[str, nn.Module] = {}
+        if i > 0:
+            layers["pool"] = nn.MaxPool2d(2, 2)
+        for index, c_in, c_out in convs:
+            layers[str(index)] = nn.Conv2d(c_in, c_out, 3, padding=1)
+            layers[f"relu{index}"] = nn.ReLU()
+        trunk.append(nn.Sequential(OrderedDict(layers)))
+    return nn.ModuleList(trunk)
+
+
+def torchvision_features(trunk: nn.ModuleList) -> dict[str, nn.Parameter]:
+    """The parameters of a trunk under their torchvision keys ``features.N.weight`` / ``features.N.bias``."""
+    params = {}
+    for stage in trunk:
+        for name, module in stage.named_children():
+            if isinstance(module, nn.Conv2d):
+                params[f"features.{name}.weight"] = module.weight
+                params[f"features.{name}.bias"] = module.bias
+    return params

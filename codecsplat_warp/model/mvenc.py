@@ -3,9 +3,10 @@
 DepthSplat-style, sized to train on one GPU:
 
 1. a CNN maps each image to features at 1/4 resolution;
-2. optional features of a pretrained monocular backbone (the *mono slot*, see :class:`MonoBackbone`) are
-   resized to the same grid and fused in by a 1x1 convolution (no pretrained model can be had offline,
-   so the default is none);
+2. optional features of a pretrained monocular backbone (the *mono slot*, see :class:`MonoBackbone`;
+   ``ModelConfig.mono = "vgg16"`` puts a frozen ImageNet VGG16 there) are resized to the same grid and
+   added by a residual 1x1 convolution over [CNN features, mono features] that starts at zero (so a model
+   trained without the branch is unchanged when it is added);
 3. transformer blocks of per-view self-attention and cross-view attention: each view attends to all
    tokens of its neighbour views (all other views, or its ``k`` nearest by camera-centre distance when
    there are more than ``k + 1`` views);
@@ -30,7 +31,7 @@ from ..errors import InputError
 from ..ops.geometry import inverse_depth_candidates, nearest_views, plane_sweep_cost_volume
 from .config import MODEL_STRIDE, ModelConfig
 from .heads import depth_from_normalized
-from .layers import ResidualBlock, conv3x3, conv_stack, group_norm, resize
+from .layers import ResidualBlock, conv3x3, conv_stack, group_norm, resize, zero_conv
 
 LOGIT_EPS = 1e-4
 """Clamp of the coarse normalised inverse depth before taking its logit (keeps the refinement finite)."""
@@ -70,6 +71,12 @@ class MVEncOutput:
     depth: torch.Tensor
     normalized_depth: torch.Tensor
     neighbours: torch.Tensor
+
+
+def context_neighbours(cameras: Cameras, k: int, scenes: int = 1) -> torch.Tensor:
+    """int64 [V,M]: each context view's ``min(k, V / scenes - 1)`` nearest views of its own scene (``scenes``
+    scenes of equally many consecutive views, see :func:`~codecsplat_warp.ops.geometry.nearest_views`)."""
+    return nearest_views(cameras, min(k, cameras.num_views // scenes - 1), scenes).long()
 
 
 def sine_positions(channels: int, height: int, width: int, device, dtype) -> torch.Tensor:
@@ -149,7 +156,7 @@ class MVEnc(nn.Module):
         c = config.cnn_channels
         self.image_encoder = ImageEncoder(c)
         self.mono_backbone = mono_backbone
-        self.mono_fuse = nn.Conv2d(c + mono_backbone.out_channels, c, 1) if mono_backbone is not None else None
+        self.mono_fuse = zero_conv(c + mono_backbone.out_channels, c, 1) if mono_backbone is not None else None
         self.blocks = nn.ModuleList(CrossViewBlock(c, config.attention_heads) for _ in range(config.attention_layers))
         self.regressor = conv_stack(config.depth_candidates + c, config.depth_channels, config.depth_candidates,
                                     blocks=2)
@@ -157,15 +164,18 @@ class MVEnc(nn.Module):
         self.refine_context = nn.Conv2d(c, refine, 1)
         self.refiner = conv_stack(3 + 1 + refine, refine, 1, blocks=1, zero_init_out=True)
 
-    def forward(self, images: torch.Tensor, cameras: Cameras) -> MVEncOutput:
-        """images [V,3,H,W] in [0,1] (H, W multiples of 4), cameras of the same V and size -> :class:`MVEncOutput`."""
+    def forward(self, images: torch.Tensor, cameras: Cameras, neighbours: torch.Tensor | None = None) -> MVEncOutput:
+        """images [V,3,H,W] in [0,1] (H, W multiples of 4), cameras of the same V and size, and the source views
+        each view attends to and matches against, int64 [V,M] (default: its nearest, :func:`context_neighbours`)
+        -> :class:`MVEncOutput`."""
         V, _, H, W = images.shape
         h, w = H // MODEL_STRIDE, W // MODEL_STRIDE
-        neighbours = nearest_views(cameras, min(self.config.neighbours, V - 1)).long()
+        if neighbours is None:
+            neighbours = context_neighbours(cameras, self.config.neighbours)
         features = self.image_encoder(images)
         if self.mono_backbone is not None:
             mono = resize(self.mono_backbone(images), h, w).to(features.dtype)
-            features = self.mono_fuse(torch.cat([features, mono], dim=1))
+            features = features + self.mono_fuse(torch.cat([features, mono], dim=1))
         features = self._attend(features, neighbours)
         candidates = inverse_depth_candidates(cameras, self.config.depth_candidates).float()
         cost = self._cost_volume(features, candidates, cameras, neighbours)

@@ -126,13 +126,22 @@ def all_other_views(num_views: int, device: torch.device | str = "cpu") -> torch
     return grid[keep].reshape(num_views, max(num_views - 1, 0)).to(torch.int32)
 
 
-def nearest_views(cameras: Cameras, k: int) -> torch.Tensor:
-    """[V,k] int32: each view's k nearest other views by camera-centre distance (ties by index)."""
+def nearest_views(cameras: Cameras, k: int, scenes: int = 1) -> torch.Tensor:
+    """[V,k] int32: each view's k nearest other views by camera-centre distance (ties by index).
+
+    With ``scenes`` > 1 the V views are that many scenes of V / scenes consecutive views each (a training
+    batch), and a view's neighbours are taken from its own scene only (indices stay global).
+    """
     V = cameras.num_views
-    if not 0 < k < V:
-        raise InputError(f"k must be in [1, {V - 1}] for {V} views, got {k}")
+    if scenes < 1 or V % scenes:
+        raise InputError(f"scenes must divide the {V} views into equal groups, got scenes={scenes}")
+    per_scene = V // scenes
+    if not 0 < k < per_scene:
+        raise InputError(f"k must be in [1, {per_scene - 1}] for {per_scene} views per scene, got {k}")
     centers = cameras.centers.to(torch.float64)
     dist = torch.cdist(centers, centers)
+    scene = torch.arange(V, device=dist.device) // per_scene
+    dist = dist.masked_fill(scene[:, None] != scene[None, :], float("inf"))
     dist.fill_diagonal_(float("inf"))
     return dist.topk(k, dim=1, largest=False).indices.to(torch.int32)
 
