@@ -134,10 +134,6 @@ class TrainingSample:
     target_cameras: Cameras
     key: str
 
-    def to(self, device) -> "TrainingSample":
-        return TrainingSample(self.context_images.to(device), self.context_cameras.to(device),
-                              self.target_images.to(device), self.target_cameras.to(device), self.key)
-
 
 @dataclass
 class TrainingBatch:
