@@ -535,12 +535,13 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
     paths = select_scenes(find_scenes(config.data), tuple(sorted(config.scenes)))
     if config.index:
         samples = index_samples(paths, config.index, protocol)
-    for path in paths if not config.index else []:
-        try:
-            samples += scene_samples(path, protocol, protocol.context_views or model.config.num_views,
-                                     config.samples_per_scene)
-        except DataError as exc:
-            skipped.append({"scene": path.name, "reason": str(exc)})
+    else:
+        for path in paths:
+            try:
+                samples += scene_samples(path, protocol, protocol.context_views or model.config.num_views,
+                                         config.samples_per_scene)
+            except DataError as exc:
+                skipped.append({"scene": path.name, "reason": str(exc)})
     if not samples:
         raise DataError(f"no scene under {config.data} is usable with the {protocol.name} protocol: "
                         + "; ".join(f"{s['scene']}: {s['reason']}" for s in skipped))

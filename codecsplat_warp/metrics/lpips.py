@@ -22,7 +22,7 @@ from torch import nn
 
 from ..device import check_tensor, common_device
 from ..errors import InputError
-from ..model.layers import torchvision_features, vgg16_trunk
+from ..model.layers import copy_weights, torchvision_features, vgg16_trunk
 
 WEIGHTS_ENV = "CODECSPLAT_LPIPS_WEIGHTS"
 """Environment variable naming the directory that holds the LPIPS safetensors files."""
@@ -98,17 +98,10 @@ class LPIPS(nn.Module):
         expected = torchvision_features(self.stages)
         for i, lin in enumerate(self.lins):
             expected[f"lin{i}.weight"] = lin.weight
-        missing = sorted(set(expected) - set(tensors))
         unexpected = sorted(set(tensors) - set(expected))
-        if missing or unexpected:
-            raise InputError(f"LPIPS weights {file} do not match the {self.net} layout: missing {missing}, "
-                             f"unexpected {unexpected}")
-        with torch.no_grad():
-            for key, param in expected.items():
-                if tensors[key].shape != param.shape:
-                    raise InputError(f"LPIPS weights {file}: {key} has shape {tuple(tensors[key].shape)}, "
-                                     f"expected {tuple(param.shape)}")
-                param.copy_(tensors[key])
+        if unexpected:
+            raise InputError(f"LPIPS weights {file} do not match the {self.net} layout: unexpected {unexpected}")
+        copy_weights(expected, tensors, f"LPIPS {file}")
 
     def train(self, mode: bool = True) -> "LPIPS":
         """Always stays in eval mode (the trunk is frozen)."""

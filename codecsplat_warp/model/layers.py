@@ -9,6 +9,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from ..errors import InputError
+
 
 def group_norm(channels: int) -> nn.GroupNorm:
     """GroupNorm with up to 8 groups (batch-size independent: training runs one scene per GPU)."""
@@ -109,3 +111,17 @@ def torchvision_features(trunk: nn.ModuleList) -> dict[str, nn.Parameter]:
                 params[f"features.{name}.weight"] = module.weight
                 params[f"features.{name}.bias"] = module.bias
     return params
+
+
+def copy_weights(params: dict[str, torch.Tensor], tensors: dict[str, torch.Tensor], source: str) -> None:
+    """Copy ``tensors[name]`` into every parameter ``params[name]`` (keys of ``tensors`` that no parameter
+    names are ignored). Raises InputError naming ``source`` and the key when one is missing or of another shape."""
+    missing = sorted(set(params) - set(tensors))
+    if missing:
+        raise InputError(f"weights {source} lack {', '.join(missing)}")
+    with torch.no_grad():
+        for key, param in params.items():
+            if tensors[key].shape != param.shape:
+                raise InputError(f"weights {source}: {key} has shape {tuple(tensors[key].shape)}, "
+                                 f"expected {tuple(param.shape)}")
+            param.copy_(tensors[key])

@@ -16,7 +16,7 @@ from safetensors.torch import load_file
 from torch import nn
 
 from ..errors import InputError
-from .layers import IMAGENET_MEAN, IMAGENET_STD, torchvision_features, vgg16_trunk
+from .layers import IMAGENET_MEAN, IMAGENET_STD, copy_weights, torchvision_features, vgg16_trunk
 
 VGG_MONO_STAGES = 3
 """relu1_2, relu2_2, relu3_3: the last one is at stride 4 (MVEnc's matching grid)."""
@@ -48,15 +48,7 @@ class VGGMono(nn.Module):
         file = pathlib.Path(file)
         if not file.is_file():
             raise InputError(f"VGG16 weights file {file} does not exist")
-        tensors = load_file(str(file))
-        with torch.no_grad():
-            for key, param in torchvision_features(self.trunk).items():
-                if key not in tensors:
-                    raise InputError(f"VGG16 weights {file}: {key} is missing")
-                if tensors[key].shape != param.shape:
-                    raise InputError(f"VGG16 weights {file}: {key} has shape {tuple(tensors[key].shape)}, "
-                                     f"expected {tuple(param.shape)}")
-                param.copy_(tensors[key])
+        copy_weights(torchvision_features(self.trunk), load_file(str(file)), f"VGG16 {file}")
         return self
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
