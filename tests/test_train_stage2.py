@@ -14,6 +14,7 @@ from conftest import needs_lpips
 from codecsplat_warp.codec import LAMBDA_MAX, LAMBDA_MIN
 from codecsplat_warp.errors import DataError, InputError
 from codecsplat_warp.model import CodecSplat, get_preset
+from codecsplat_warp.model.pretrained import save_pretrained
 from train.checkpoint import latest_checkpoint, load_model_weights, save_checkpoint
 from train.data import DataSpec, make_source
 from train.stage1 import METRICS_FILE, TrainConfig, make_optimizer
@@ -49,6 +50,22 @@ def test_stage2_model_starts_from_stage1_with_only_codec_modules_trainable(tmp_p
         build_stage2_model(TINY, Stage2Config(init=str(tmp_path / "missing"), out=str(tmp_path / "s3")))
     with pytest.raises(InputError, match="--init"):
         run_model_config(Stage2Config(init="", out=str(tmp_path / "s4")))
+
+
+def test_codec_init_copies_every_stage2_module_over_the_stage1_start(tmp_path):
+    stage1 = _stage1_run(tmp_path / "s1")
+    torch.manual_seed(11)
+    donor = CodecSplat(TINY, codec=True)
+    save_pretrained(donor, tmp_path / "donor.safetensors")
+    config = Stage2Config(init=str(tmp_path / "s1"), out=str(tmp_path / "s2"),
+                          codec_init=str(tmp_path / "donor.safetensors"))
+    model = build_stage2_model(TINY, config)
+    for name, value in model.state_dict().items():
+        from_donor = name.split(".")[0] in CodecSplat.CODEC_MODULE_NAMES
+        assert torch.equal(value, (donor if from_donor else stage1).state_dict()[name]), name
+    with pytest.raises(DataError, match="holds no codec"):  # a stage-1 run has no codec to copy
+        build_stage2_model(TINY, Stage2Config(init=str(tmp_path / "s1"), out=str(tmp_path / "s3"),
+                                              codec_init=str(tmp_path / "s1")))
 
 
 def test_lambda_is_log_uniform_and_reproducible_per_step_and_rank():

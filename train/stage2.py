@@ -3,8 +3,9 @@
 Initialised from a stage-1 run (``--init``): the backbone, the GS head and the decoder depth head (which
 stage 1 trained as an auxiliary on F_c) are copied, and the post-codec refiner R_post starts as a copy of
 the pre-codec refiner R_pre (same shapes, same job on a feature that should look like F_c). ``--codec-init
-MODEL_FILE_OR_RUN`` warm-starts the latent codec from another model's (the shipped default, say). Only the
-codec, the depth head and R_post train; everything else is frozen. Per step, lambda is drawn
+MODEL_FILE_OR_RUN`` instead warm-starts all three stage-2 modules (latent codec, decoder depth head and R_post)
+from another model's (the shipped default, say: continuing its stage 2 on a backbone that stage 1 trained
+further). Only the codec, the depth head and R_post train; everything else is frozen. Per step, lambda is drawn
 log-uniformly from [16, 1024] and the loss is
 
     (lambda / 1024) * [D_render + gamma * |S - S_enc|_1 + alpha(step) * |F^_c - F_c|^2 / |F_c|^2] + beta * R
@@ -154,9 +155,9 @@ def coded_rate(model: CodecSplat, batch: TrainingBatch, lam: float, training_bit
 
 
 def build_stage2_model(model_config: ModelConfig, config: Stage2Config) -> CodecSplat:
-    """A CodecSplat with its codec: backbone, heads and R_post from the stage-1 run ``config.init`` and the
-    codec from ``config.codec_init`` (unless ``config.out`` already has a checkpoint to resume); only the
-    stage-2 modules trainable."""
+    """A CodecSplat with its codec: backbone, heads and R_post from the stage-1 run ``config.init``, then the
+    stage-2 modules from ``config.codec_init`` when given (unless ``config.out`` already has a checkpoint to
+    resume); only the stage-2 modules trainable."""
     model = CodecSplat(model_config, codec=True)
     if latest_checkpoint(config.out) is None:
         load_stage1_weights(model, config.init)
@@ -185,14 +186,17 @@ def load_stage1_weights(model: CodecSplat, run) -> None:
 
 
 def load_codec_weights(model: CodecSplat, source) -> None:
-    """Copy the latent codec of a model file or run (``codec.*`` tensors) into ``model``.
-    Raises DataError when the source has no codec of this model's shapes."""
-    prefix = "codec."
-    tensors = {k[len(prefix):]: v for k, v in read_weights(source).items() if k.startswith(prefix)}
-    try:
-        model.codec.load_state_dict(tensors)
-    except RuntimeError as exc:
-        raise DataError(f"--codec-init {source} holds no latent codec of this model's shapes: {exc}") from None
+    """Copy the stage-2 modules (:attr:`CodecSplat.CODEC_MODULE_NAMES`: the ``codec.*``, ``depth_head.*`` and
+    ``refine_post.*`` tensors) of a model file or run into ``model``.
+    Raises DataError when the source lacks one of them or holds other shapes."""
+    weights = read_weights(source)
+    for name in model.CODEC_MODULE_NAMES:
+        prefix = name + "."
+        tensors = {k[len(prefix):]: v for k, v in weights.items() if k.startswith(prefix)}
+        try:
+            getattr(model, name).load_state_dict(tensors)
+        except RuntimeError as exc:
+            raise DataError(f"--codec-init {source} holds no {name} of this model's shapes: {exc}") from None
 
 
 def run_model_config(config: Stage2Config) -> ModelConfig:

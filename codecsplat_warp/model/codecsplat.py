@@ -75,10 +75,13 @@ class CodecSplat(nn.Module):
         """Whether the stage-2 modules exist (see ``codec`` of the constructor)."""
         return self.codec is not None
 
+    CODEC_MODULE_NAMES = ("codec", "depth_head", "refine_post")
+    """Attribute names of the stage-2 modules (:meth:`codec_modules`)."""
+
     def codec_modules(self) -> list[nn.Module]:
         """The stage-2 modules (trained in stage 2, the rest frozen): codec, depth head, post-codec refiner."""
         self._require_codec()
-        return [self.codec, self.depth_head, self.refine_post]
+        return [getattr(self, name) for name in self.CODEC_MODULE_NAMES]
 
     def forward(self, images: torch.Tensor, cameras: Cameras, lam: float | None = None, scenes: int = 1) -> dict:
         """Run the codec-free path, or with ``lam`` the codec path (stage 2, differentiable).
