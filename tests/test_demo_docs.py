@@ -22,7 +22,8 @@ README_RUN = REPO / "codecsplat-demo" / "summary.json"
 def _fresh_summary(tmp_path, documented: dict) -> dict:
     if README_RUN.is_file():
         summary = json.loads(README_RUN.read_text())
-        if summary["config"]["lambdas"] == documented["config"]["lambdas"] and summary["device"] == "cpu":
+        if (summary["config"]["lambdas"] == documented["config"]["lambdas"] and summary["device"] == "cpu"
+                and summary["model_id"] == documented["model_id"]):
             return summary
     model = load_pretrained(device=torch.device("cpu"))
     config = DemoConfig(out=str(tmp_path / "demo"), lpips_weights=documented["config"]["lpips_weights"],

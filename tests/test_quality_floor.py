@@ -5,7 +5,8 @@ views, 3 targets between them) at 256x256, the RE10K protocol size; no training 
 Both the codec-free path and the decoded bitstream at lambda = 1024 must beat the copy-nearest floor by
 :data:`MARGIN_DB` on the mean PSNR of the samples. Measured on a 2-core EPYC: the model shipped before this
 test existed (weights of model 4946ca55d1d390a0) fails it, codec-free 19.93 dB but lambda = 1024 17.47 dB against
-16.91 dB for copying the nearest view (+0.56); model fab873b04d6612da passes, 19.26 and 18.33 dB (+2.35, +1.42).
+16.91 dB for copying the nearest view (+0.56); model fab873b04d6612da (session 8) passed, 19.26 and 18.33 dB (+2.35,
++1.42); model 4b003f010e45c6db (session 9) passes, 20.62 and 19.24 dB (+3.71, +2.33).
 """
 
 from __future__ import annotations
