@@ -1,7 +1,8 @@
 """Novel-view paths and frame output: orbit cameras around a decoded scene, PNG frames, GIF and MP4 files.
 
-GIF is written by Pillow (always installed); MP4 needs an imageio video plugin: ``imageio-ffmpeg``
-(``pip install imageio-ffmpeg``, which bundles an ffmpeg binary) or PyAV (``pip install av``).
+GIF is written by Pillow; MP4 (H.264) by an imageio video plugin: ``imageio-ffmpeg`` (a dependency of the
+package, which bundles an ffmpeg binary) or, where only it is installed, PyAV (``av``). Both Pillow and
+imageio-ffmpeg come with ``pip install codecsplat-warp``.
 """
 
 from __future__ import annotations
