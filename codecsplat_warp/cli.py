@@ -109,7 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
                                            "in the encoded scene's world frame; rendered at its image size")
     cameras.add_argument("--orbit", type=int, metavar="N", help="N views on a circle around the context viewpoint")
     render.add_argument("-o", "--out", required=True, help="output folder")
-    render.add_argument("--format", choices=FORMATS, default="png", help="png frames, gif or mp4 (mp4 needs imageio-ffmpeg)")
+    render.add_argument("--format", choices=FORMATS, default="png", help="png frames, gif or mp4 (H.264, through imageio-ffmpeg)")
     render.add_argument("--fps", type=float, default=30.0, help="frames per second of gif/mp4")
 
     evaluate = sub.add_parser("eval", help="the paper's Tables 1 and 2 (with baselines) on a folder of scenes")

@@ -8,6 +8,7 @@ import torch
 
 from codecsplat_warp.baselines import FeatureDeflate, PlyDeflate, PngCompression, kmeans, morton_codes
 from codecsplat_warp.baselines.container import pack, unpack
+from codecsplat_warp.baselines.png import MAGIC as PNG_MAGIC
 from codecsplat_warp.cameras import Cameras, intrinsics_matrix
 from codecsplat_warp.errors import BitstreamError
 from test_ply import random_gaussians
@@ -83,18 +84,49 @@ def _streams():
                                                        torch.rand(2, 16, 16, generator=g) + 1, cameras))]
 
 
-def test_corrupt_streams_raise_bitstream_errors_only():
+def test_broken_framing_is_detected():
     rng = np.random.default_rng(0)
     for codec, data in _streams():
-        candidates = [b"", data[:3], data[:len(data) // 2], data[:-1], data + b"x", b"XXXX" + data[4:],
-                      bytes(rng.integers(0, 256, 64, dtype=np.uint8))]
-        for _ in range(20):
+        for candidate in (b"", data[:3], data[:len(data) // 2], data[:-1], data + b"x", b"XXXX" + data[4:],
+                          bytes(rng.integers(0, 256, 64, dtype=np.uint8))):
+            with pytest.raises(BitstreamError):
+                codec.decode(candidate)
+
+
+def _repacked(data: bytes, magic: bytes, header_update: dict | None = None,
+              flip: tuple[int, int] | None = None) -> bytes:
+    """``data`` re-framed with ``header_update`` merged into its header and ``flip`` = (byte, bit) of part 0 flipped."""
+    header, parts = unpack(data, magic)
+    if flip is not None:
+        part = bytearray(parts[0])
+        part[flip[0]] ^= 1 << flip[1]
+        parts[0] = bytes(part)
+    return pack(magic, {**header, **(header_update or {})}, parts)
+
+
+def test_png_stream_with_a_bad_count_or_a_broken_png_chunk_is_detected():
+    codec, data = _streams()[1]
+    header, _ = unpack(data, PNG_MAGIC)
+    too_many = header["width"] * header["height"] + 1
+    with pytest.raises(BitstreamError, match="do not fit"):
+        codec.decode(_repacked(data, PNG_MAGIC, {"count": too_many}))
+    # Byte 36 of a PNG is the low byte of its second chunk's length (8-byte signature + 25-byte IHDR chunk + 3):
+    # Pillow meets a broken chunk and raises SyntaxError, which the decoder must turn into a BitstreamError.
+    with pytest.raises(BitstreamError, match="broken PNG"):
+        codec.decode(_repacked(data, PNG_MAGIC, flip=(36, 3)))
+
+
+def test_bit_flips_raise_bitstream_errors_only():
+    """A flipped bit is either detected (BitstreamError) or decodes: the framing has no checksum, so a flip inside
+    a JSON number of the header, or in bits that a payload format does not check (such as Deflate's padding after
+    its last block), can decode to other values. Any other exception fails the test."""
+    rng = np.random.default_rng(0)
+    for codec, data in _streams():
+        for _ in range(100):
             mutated = bytearray(data)
             mutated[int(rng.integers(4, len(data)))] ^= 1 << int(rng.integers(8))
-            candidates.append(bytes(mutated))
-        for candidate in candidates:
             try:
-                codec.decode(candidate)
+                codec.decode(bytes(mutated))
             except BitstreamError:
                 pass
 

@@ -10,6 +10,7 @@ import torch
 from codecsplat_warp.cameras import Cameras, intrinsics_matrix
 from codecsplat_warp.data.procedural import look_at
 from codecsplat_warp.errors import InputError
+from codecsplat_warp.export import video
 from codecsplat_warp.export.video import ORBIT_MIN_RADIUS_FRACTION, mp4_plugin, orbit_cameras, to_uint8_frames, write_frames
 
 
@@ -72,14 +73,25 @@ def test_bad_format_and_fps_are_input_errors(tmp_path):
         write_frames(tmp_path, _frames(), "gif", fps=0)
 
 
-@pytest.mark.skipif(mp4_plugin() is not None, reason="an MP4 plugin is installed")
-def test_mp4_without_plugin_names_the_package(tmp_path):
+def test_mp4_without_plugin_names_the_package(tmp_path, monkeypatch):
+    monkeypatch.setattr(video, "MP4_PLUGINS", ())  # as if neither imageio-ffmpeg nor av were installed
     with pytest.raises(InputError, match="pip install imageio-ffmpeg"):
         write_frames(tmp_path, _frames(), "mp4")
     assert list(tmp_path.iterdir()) == []
 
 
+def _smooth_frames(count=4, height=20, width=30) -> np.ndarray:
+    """uint8 [F,H,W,3] ramps (red along x, green along y, blue per frame) that H.264 keeps within a few levels."""
+    y, x = np.mgrid[0:height, 0:width]
+    return np.stack([np.stack([x * 5, y * 7, np.full_like(x, 60 * i)], -1) for i in range(count)]).astype(np.uint8)
+
+
 @pytest.mark.skipif(mp4_plugin() is None, reason="no MP4 plugin (imageio-ffmpeg or av) installed")
-def test_mp4_with_plugin_writes_a_video(tmp_path):
-    (path,) = write_frames(tmp_path, _frames(count=4, height=32, width=48), "mp4", fps=4)
-    assert path.name == "render.mp4" and path.stat().st_size > 0
+def test_mp4_round_trips_frames_and_fps(tmp_path):
+    frames = _smooth_frames()
+    (path,) = write_frames(tmp_path, frames, "mp4", fps=4)
+    assert path.name == "render.mp4" and list(tmp_path.iterdir()) == [path]
+    decoded = iio.imread(path, index=None, plugin=mp4_plugin())
+    assert decoded.shape == frames.shape and decoded.dtype == np.uint8  # sides not multiples of 16 keep their size
+    assert np.abs(decoded.astype(np.int16) - frames).mean() < 6  # lossy H.264: a few levels; frames in order
+    assert iio.immeta(path, plugin=mp4_plugin())["fps"] == pytest.approx(4.0)

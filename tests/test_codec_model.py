@@ -188,6 +188,9 @@ def test_shipped_model_loads_and_fits_in_16_mb():
     assert DEFAULT_CHECKPOINT.stat().st_size <= 16_000_000
     model = load_pretrained(device="cpu")
     assert model.has_codec and model.config.name == "re10k"
+    with safe_open(str(DEFAULT_CHECKPOINT), framework="pt") as f:  # stored by save_pretrained(half=True)
+        assert {f.get_slice(name).get_dtype() for name in f.keys()} == {"F16"}
+    assert {t.dtype for t in model.state_dict().values()} == {torch.float32}
 
 
 def test_re10k_pretrained_file_fits_in_16_mib(tmp_path):

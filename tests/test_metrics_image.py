@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from skimage.metrics import structural_similarity
 
 from codecsplat_warp.errors import InputError
 from codecsplat_warp.metrics import ImageMetrics, psnr, ssim
@@ -46,7 +47,6 @@ def test_ssim_rejects_images_smaller_than_the_window_and_mismatched_shapes():
 
 
 def _skimage_ssim(prediction: torch.Tensor, target: torch.Tensor) -> list[float]:
-    structural_similarity = pytest.importorskip("skimage.metrics").structural_similarity
     return [structural_similarity(p.clamp(0, 1).double().permute(1, 2, 0).numpy(), t.double().permute(1, 2, 0).numpy(),
                                   win_size=11, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
                                   data_range=1.0, channel_axis=2) for p, t in zip(prediction, target)]

@@ -104,12 +104,15 @@ class PngCompression:
         header, parts = unpack(data, MAGIC)
         try:
             return _decode(header, parts, torch.device(device))
-        except (KeyError, IndexError, TypeError, ValueError, OSError, zlib.error) as exc:
+        # Pillow raises SyntaxError for a PNG chunk it cannot parse (a broken chunk header or checksum).
+        except (KeyError, IndexError, TypeError, ValueError, OSError, SyntaxError, zlib.error) as exc:
             raise BitstreamError(f"corrupt PNG stream: {exc}") from None
 
 
 def _decode(header: dict, parts: list[bytes], device: torch.device) -> Gaussians:
     n, width, height, degree = (int(header[k]) for k in ("count", "width", "height", "sh_degree"))
+    if not 0 <= n <= width * height:
+        raise BitstreamError(f"corrupt PNG stream: {n} Gaussians do not fit a {width}x{height} grid")
     ranges = header["ranges"]
     flat = lambda image: image.reshape(width * height, -1)[:n]  # noqa: E731
     low, high = (_read_png(p, (height, width, 3)).astype(np.uint16) for p in parts[:2])

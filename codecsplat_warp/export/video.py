@@ -1,7 +1,8 @@
 """Novel-view paths and frame output: orbit cameras around a decoded scene, PNG frames, GIF and MP4 files.
 
-GIF is written by Pillow (always installed); MP4 needs an imageio video plugin: ``imageio-ffmpeg``
-(``pip install imageio-ffmpeg``, which bundles an ffmpeg binary) or PyAV (``pip install av``).
+GIF is written by Pillow; MP4 (H.264) by an imageio video plugin: ``imageio-ffmpeg`` (a dependency of the
+package, which bundles an ffmpeg binary) or, where only it is installed, PyAV (``av``). Both Pillow and
+imageio-ffmpeg come with ``pip install codecsplat-warp``.
 """
 
 from __future__ import annotations
@@ -24,6 +25,10 @@ FORMATS = ("png", "gif", "mp4")
 
 MP4_PLUGINS = (("imageio_ffmpeg", "FFMPEG"), ("av", "pyav"))
 """(module, imageio plugin) pairs that can write MP4, in order of preference."""
+
+MP4_FFMPEG_MACRO_BLOCK = 2
+"""imageio-ffmpeg rounds frame sides up to a multiple of this (its default, 16, resized 30x20 frames to 32x32);
+2 is what H.264 in yuv420p needs, so even-sided frames keep their size and odd sides grow by one pixel."""
 
 MP4_MISSING = "--format mp4 needs an imageio video plugin: pip install imageio-ffmpeg (or pip install av)"
 
@@ -77,7 +82,8 @@ def to_uint8_frames(rgb: torch.Tensor) -> np.ndarray:
 
 def write_frames(folder: str | os.PathLike, frames: np.ndarray, format: str, fps: float = 30.0) -> list[pathlib.Path]:
     """Write uint8 frames [F,H,W,3] into ``folder``: ``frame_0000.png`` ... (png), ``render.gif`` or
-    ``render.mp4``; each file atomically. Returns the written paths.
+    ``render.mp4`` (H.264 at the frames' size when H and W are even, see :data:`MP4_FFMPEG_MACRO_BLOCK`);
+    each file atomically. Returns the written paths.
 
     Raises:
         InputError: unknown format, fps <= 0, or mp4 without a video plugin (:data:`MP4_MISSING`).
@@ -103,5 +109,6 @@ def write_frames(folder: str | os.PathLike, frames: np.ndarray, format: str, fps
             plugin = mp4_plugin()
             if plugin is None:
                 raise InputError(MP4_MISSING)
-            iio.imwrite(tmp, frames, extension=".mp4", plugin=plugin, fps=fps, codec="libx264")
+            options = {"macro_block_size": MP4_FFMPEG_MACRO_BLOCK} if plugin == "FFMPEG" else {}
+            iio.imwrite(tmp, frames, extension=".mp4", plugin=plugin, fps=fps, codec="libx264", **options)
     return [path]

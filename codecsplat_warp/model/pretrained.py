@@ -1,13 +1,18 @@
 """Pretrained CodecSplat files and model identifiers.
 
-A pretrained file is ONE safetensors file: every weight in float32, and in its metadata the format name,
-the :class:`~codecsplat_warp.model.config.ModelConfig` as JSON, the SHA-256 of the weights (checked on
-load) and the model identifier. The re10k/dl3dv presets hold about 4.1 M parameters, i.e. 15.7 MiB, within
-the 16 MiB a file may have. The shipped default lives at :data:`DEFAULT_CHECKPOINT`.
+A pretrained file is ONE safetensors file: every weight in float32, or in float16 when written with
+``save_pretrained(half=True)`` (weights first rounded to float16 values by :func:`round_to_half`), and in its
+metadata the format name, the :class:`~codecsplat_warp.model.config.ModelConfig` as JSON, the SHA-256 of the
+weights (checked on load) and the model identifier. Loading gives a float32 model either way. The re10k/dl3dv
+presets hold about 4.1 M parameters, i.e. 15.7 MiB in float32 (7.9 MiB in float16), within the 16 MiB a file
+may have. The shipped default at :data:`DEFAULT_CHECKPOINT` is stored in float16 (``python -m train.export
+... --half``): with its VGG16 mono prior it holds about 5.9 M parameters, 11.3 MiB, which would not fit in
+float32.
 
 The *model identifier* (:func:`model_id`, 16 hex digits) names the decoder a bitstream needs: a hash of the
-config, the float32 weights and the entropy coder's probability tables. Every bitstream carries it in its
-header, and decoding with another model raises BitstreamError naming both.
+config, the weights as float32 values (so a float16 file and the float32 model it loads into share it) and
+the entropy coder's probability tables. Every bitstream carries it in its header, and decoding with another
+model raises BitstreamError naming both.
 """
 
 from __future__ import annotations
