@@ -6,8 +6,8 @@ metadata the format name, the :class:`~codecsplat_warp.model.config.ModelConfig`
 weights (checked on load) and the model identifier. Loading gives a float32 model either way. The re10k/dl3dv
 presets hold about 4.1 M parameters, i.e. 15.7 MiB in float32 (7.9 MiB in float16), within the 16 MiB a file
 may have. The shipped default at :data:`DEFAULT_CHECKPOINT` is stored in float16 (``python -m train.export
-... --half``): with its VGG16 mono prior it holds about 5.9 M parameters, 11.3 MiB, which would not fit in
-float32.
+... --half``, 7.9 MiB; a model with the VGG16 mono prior holds about 5.9 M parameters, 11.3 MiB in float16,
+which would not fit in float32).
 
 The *model identifier* (:func:`model_id`, 16 hex digits) names the decoder a bitstream needs: a hash of the
 config, the weights as float32 values (so a float16 file and the float32 model it loads into share it) and
