@@ -48,7 +48,7 @@ from .errors import DataError, InputError
 from .export.files import atomic_output, write_text
 from .export.ply import decode_ply, encode_ply
 from .metrics.image import ImageMetrics
-from .model.gaussians import Gaussians
+from .gaussians import Gaussians
 from .model.pretrained import model_id
 
 CODECSPLAT = "CodecSplat"

@@ -61,7 +61,7 @@ def test_quick_report_writes_json_markdown_and_png(tmp_path):
 
 def test_codec_hook_measures_psnr_against_encode_decode_time(tmp_path):
     from codecsplat_warp.model import CodecSplat
-    from codecsplat_warp.model.config import PRESETS
+    from codecsplat_warp.nn.config import PRESETS
 
     assert report.codec_available()
     model = CodecSplat(PRESETS["tiny"], codec=True).eval()

@@ -18,7 +18,8 @@ from codecsplat_warp.data import ProceduralConfig, load_scene, procedural_scene
 from codecsplat_warp.export import read_ply
 from codecsplat_warp.export.video import mp4_plugin
 from codecsplat_warp.metrics import WEIGHTS_ENV
-from codecsplat_warp.model import CodecSplat, get_preset
+from codecsplat_warp.model import CodecSplat
+from codecsplat_warp.nn.config import get_preset
 from codecsplat_warp.model.pretrained import save_pretrained
 
 WIDTH, HEIGHT = 48, 32

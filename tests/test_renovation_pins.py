@@ -14,7 +14,8 @@ import pytest
 import torch
 
 from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
-from codecsplat_warp.model import CodecSplat, get_preset
+from codecsplat_warp.model import CodecSplat
+from codecsplat_warp.nn.config import get_preset
 
 SEED = 1234
 POSTERIOR_GAIN = 30.0

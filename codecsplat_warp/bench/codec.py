@@ -34,7 +34,7 @@ from ..cameras import Cameras
 from ..codec.latent import no_timer
 from ..errors import DataError, InputError
 from ..model.codecsplat import CodecSplat
-from ..model.config import get_preset
+from ..nn.config import get_preset
 from ..model.pretrained import load_pretrained, model_id
 from ..synthetic import make_rig
 from .common import format_table, machine_name

@@ -26,12 +26,12 @@ from ..codec.latent import LatentCodec, Timer, check_lambda, no_timer
 from ..codec.scene import DecodedScene, EncodedScene
 from ..device import check_finite, check_tensor, common_device, resolve_device
 from ..errors import BitstreamError, DeviceMismatchError, InputError
+from ..gaussians import Gaussians
+from ..nn.config import FEATURE_STRIDE, MODEL_STRIDE, ModelConfig
+from ..nn.mono import build_mono_backbone
 from ..ops.raster import rasterize
-from .config import FEATURE_STRIDE, MODEL_STRIDE, ModelConfig
 from .feathead import FeatHead
-from .gaussians import Gaussians, map_to_world
-from .heads import DepthHead, GaussianHead
-from .mono import build_mono_backbone
+from .heads import DepthHead, GaussianHead, map_to_world
 from .mvenc import MonoBackbone, MVEnc, context_neighbours
 from .pretrained import model_id
 from .refine import Refiner
@@ -47,7 +47,7 @@ class CodecSplat(nn.Module):
     """Feed-forward Gaussian generator and scene codec.
 
     Args:
-        config: sizes (see :mod:`.config` presets).
+        config: sizes (see :mod:`codecsplat_warp.nn.config` presets).
         mono_backbone: optional pretrained monocular feature extractor (see :class:`.mvenc.MonoBackbone`);
             default: the one ``config.mono`` names (random weights until a state dict or
             ``load_imagenet`` fills them), or none.

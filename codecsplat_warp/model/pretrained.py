@@ -1,7 +1,7 @@
 """Pretrained CodecSplat files and model identifiers.
 
 A pretrained file is ONE safetensors file: every weight in float32, and in its metadata the format name,
-the :class:`~codecsplat_warp.model.config.ModelConfig` as JSON, the SHA-256 of the weights (checked on
+the :class:`~codecsplat_warp.nn.config.ModelConfig` as JSON, the SHA-256 of the weights (checked on
 load) and the model identifier. The re10k/dl3dv presets hold about 4.1 M parameters, i.e. 15.7 MiB, within
 the 16 MiB a file may have. The shipped default lives at :data:`DEFAULT_CHECKPOINT`.
 
@@ -24,7 +24,7 @@ from safetensors.torch import save_file
 from ..codec.entropy import entropy_model_digest
 from ..device import resolve_device
 from ..errors import DataError, InputError
-from .config import ModelConfig
+from ..nn.config import ModelConfig
 
 DEFAULT_CHECKPOINT = pathlib.Path(__file__).resolve().parents[1] / "assets" / "codecsplat-default.safetensors"
 """The checkpoint shipped with the package (``load_pretrained()`` with no path)."""
