@@ -36,7 +36,7 @@ from .export.files import atomic_output, write_bytes
 from .export.ply import write_ply
 from .export.video import to_uint8_frames
 from .metrics.image import ImageMetrics
-from .model.pretrained import model_id
+from .model.codecsplat import model_id
 from .model.prune import prune_gaussians
 
 DEMO_SEED = 3

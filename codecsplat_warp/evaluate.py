@@ -49,7 +49,7 @@ from .export.files import atomic_output, write_text
 from .export.ply import decode_ply, encode_ply
 from .metrics.image import ImageMetrics
 from .gaussians import Gaussians
-from .model.pretrained import model_id
+from .model.codecsplat import model_id
 
 CODECSPLAT = "CodecSplat"
 BACKBONE = "CodecSplat w/o codec"

@@ -33,9 +33,9 @@ import torch
 from ..cameras import Cameras
 from ..codec.latent import no_timer
 from ..errors import DataError, InputError
-from ..model.codecsplat import CodecSplat
+from ..model.codecsplat import CodecSplat, model_id
 from ..nn.config import get_preset
-from ..model.pretrained import load_pretrained, model_id
+from ..model.pretrained import load_pretrained
 from ..synthetic import make_rig
 from .common import format_table, machine_name
 

@@ -5,13 +5,13 @@ Entry point: ``CodecSplat(get_preset("re10k"))`` (presets in :mod:`codecsplat_wa
 :mod:`codecsplat_warp.gaussians`.
 """
 
-from .codecsplat import CodecSplat
+from .codecsplat import CodecSplat, model_id
 from .feathead import FeatHead
 from .heads import DepthHead, GaussianHead, PixelGaussians, depth_from_normalized, map_to_world, normalized_from_depth
 from .mvenc import MonoBackbone, MVEnc, MVEncOutput
 from .refine import Refiner
 
 __all__ = [
-    "CodecSplat", "FeatHead", "DepthHead", "GaussianHead", "PixelGaussians", "depth_from_normalized", "map_to_world",
+    "CodecSplat", "model_id", "FeatHead", "DepthHead", "GaussianHead", "PixelGaussians", "depth_from_normalized", "map_to_world",
     "normalized_from_depth", "MonoBackbone", "MVEnc", "MVEncOutput", "Refiner",
 ]
