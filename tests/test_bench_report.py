@@ -80,7 +80,7 @@ def test_codec_hook_measures_psnr_against_encode_decode_time(tmp_path):
 
 def test_interleaved_rounds_alternate_their_order():
     """One warm-up call each, then rounds in order and in reverse order by turns; one sample per call per round."""
-    from codecsplat_warp.bench.common import interleaved_medians
+    from codecsplat_warp.measure import interleaved_medians
 
     ran = []
     calls = {name: (lambda name=name: ran.append(name)) for name in "abc"}
