@@ -420,7 +420,7 @@ def _cmd_selfcheck(args) -> int:
 
 
 def _cmd_bench(args) -> int:
-    from .bench.common import write_json
+    from .export.files import write_json
     from .device import resolve_device
 
     args.device = str(resolve_device(args.device))

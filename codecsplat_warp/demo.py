@@ -24,7 +24,6 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from .bench.common import write_json
 from .cameras import Cameras
 from .codec import bytes_report, check_lambda
 from .data.procedural import ProceduralConfig, procedural_scene
@@ -32,11 +31,11 @@ from .errors import InputError
 from .data import split_context_targets
 from .evaluate import (BACKBONE, COPY_NEAREST, Sample, format_bytes, nearest_context_images, plot_rate_distortion,
                        pyplot, save_figure, timed)
-from .export.files import atomic_output, write_bytes
+from .export.files import atomic_output, write_bytes, write_json
 from .export.ply import write_ply
 from .export.video import to_uint8_frames
 from .metrics.image import ImageMetrics
-from .model.pretrained import model_id
+from .model.codecsplat import model_id
 from .model.prune import prune_gaussians
 
 DEMO_SEED = 3

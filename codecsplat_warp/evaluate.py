@@ -39,17 +39,17 @@ import torch
 from tqdm.auto import tqdm
 
 from .baselines import FeatureDeflate, PlyDeflate, PngCompression
-from .bench.common import format_table, machine_name, write_json
 from .cameras import Cameras
 from .codec import bytes_report, check_lambda
 from .data import detect_formats, load_evaluation_index, load_scene, split_context_targets
 from .data.preprocess import DatasetConfig, preprocess_scene
 from .errors import DataError, InputError
-from .export.files import atomic_output, write_text
+from .export.files import atomic_output, write_json, write_text
 from .export.ply import decode_ply, encode_ply
+from .gaussians import Gaussians
+from .measure import format_table, machine_name
 from .metrics.image import ImageMetrics
-from .model.gaussians import Gaussians
-from .model.pretrained import model_id
+from .model.codecsplat import model_id
 
 CODECSPLAT = "CodecSplat"
 BACKBONE = "CodecSplat w/o codec"

@@ -12,7 +12,7 @@ from typing import Callable, Sequence
 
 import torch
 
-from .bench.common import format_table, time_call
+from .measure import format_table, time_call
 from .ops import geometry
 from .ops.raster import rasterize
 from .reference import geometry as reference

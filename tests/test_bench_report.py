@@ -68,7 +68,7 @@ def test_quick_report_writes_json_markdown_and_png(tmp_path):
 
 def test_codec_hook_measures_psnr_against_encode_decode_time(tmp_path):
     from codecsplat_warp.model import CodecSplat
-    from codecsplat_warp.model.config import PRESETS
+    from codecsplat_warp.nn.config import PRESETS
 
     assert report.codec_available()
     model = CodecSplat(PRESETS["tiny"], codec=True).eval()
@@ -87,7 +87,7 @@ def test_codec_hook_measures_psnr_against_encode_decode_time(tmp_path):
 
 def test_interleaved_rounds_alternate_their_order():
     """One warm-up call each, then rounds in order and in reverse order by turns; one sample per call per round."""
-    from codecsplat_warp.bench.common import interleaved_medians
+    from codecsplat_warp.measure import interleaved_medians
 
     ran = []
     calls = {name: (lambda name=name: ran.append(name)) for name in "abc"}

@@ -17,11 +17,11 @@ import torch
 from codecsplat_warp.cli import BENCHMARKS, EXIT_USER, build_parser, main
 from codecsplat_warp.data import ProceduralConfig, load_scene, procedural_scene
 from codecsplat_warp.demo import DEMO_SEED, demo_sample
-from codecsplat_warp.export import read_ply
-from codecsplat_warp.export import video
+from codecsplat_warp.export import read_ply, video
 from codecsplat_warp.metrics import WEIGHTS_ENV, psnr
-from codecsplat_warp.model import CodecSplat, get_preset
+from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.model.pretrained import save_pretrained
+from codecsplat_warp.nn.config import get_preset
 
 WIDTH, HEIGHT = 48, 32
 

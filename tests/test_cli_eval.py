@@ -96,7 +96,8 @@ def test_summary_means_and_paper_tables():
 
 def test_an_interrupted_eval_keeps_the_samples_it_finished(tmp_path, monkeypatch):
     from codecsplat_warp.evaluate import Evaluator
-    from codecsplat_warp.model import CodecSplat, get_preset
+    from codecsplat_warp.model import CodecSplat
+    from codecsplat_warp.nn.config import get_preset
 
     for name, seed in (("a", 1), ("b", 2)):
         write_scene(tmp_path / "data" / name, seed=seed, views=3)

@@ -8,7 +8,8 @@ import torch
 from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
 from codecsplat_warp.evaluate import Sample
 from codecsplat_warp.metrics.image import psnr
-from codecsplat_warp.model import CodecSplat, get_preset
+from codecsplat_warp.model import CodecSplat
+from codecsplat_warp.nn.config import get_preset
 from train.codec_limits import sample_scores
 
 

@@ -14,10 +14,10 @@ from safetensors.torch import save_file
 from codecsplat_warp.codec import LAMBDA_MAX, LAMBDA_MIN, DecodedScene, bytes_report, parse_bitstream
 from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
 from codecsplat_warp.errors import BitstreamError, DataError, DeviceMismatchError, InputError
-from codecsplat_warp.model import CodecSplat, get_preset
-from codecsplat_warp.model.pretrained import (
-    DEFAULT_CHECKPOINT, load_pretrained, model_id, round_to_half, save_pretrained,
-)
+from codecsplat_warp.model import CodecSplat
+from codecsplat_warp.nn.config import get_preset
+from codecsplat_warp.model.codecsplat import model_id
+from codecsplat_warp.model.pretrained import DEFAULT_CHECKPOINT, load_pretrained, round_to_half, save_pretrained
 
 TINY = get_preset("tiny")
 POSTERIOR_GAIN = 30.0

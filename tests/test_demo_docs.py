@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from codecsplat_warp.demo import DemoConfig, quality_table, run_demo
-from codecsplat_warp.model.pretrained import load_pretrained, model_id
+from codecsplat_warp.model.codecsplat import model_id
+from codecsplat_warp.model.pretrained import load_pretrained
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 DOCUMENTED = REPO / "docs" / "demo" / "summary-cpu.json"

@@ -20,7 +20,8 @@ from codecsplat_warp.cli import EXIT_OK, EXIT_USER, main
 from codecsplat_warp.codec import bytes_report, pack_bitstream
 from codecsplat_warp.export import read_ply
 from codecsplat_warp.metrics import WEIGHTS_ENV
-from codecsplat_warp.model import CodecSplat, get_preset
+from codecsplat_warp.model import CodecSplat
+from codecsplat_warp.nn.config import get_preset
 from codecsplat_warp.model.pretrained import save_pretrained
 from codecsplat_warp.synthetic import make_rig
 from test_cli_commands import write_scene

@@ -9,8 +9,8 @@ from torch import nn
 from codecsplat_warp.cameras import Cameras
 from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
 from codecsplat_warp.errors import DeviceMismatchError, InputError
-from codecsplat_warp.model import PRESETS, CodecSplat, DepthHead, ModelConfig, get_preset, normalized_from_depth
-from codecsplat_warp.model.config import FEATURE_STRIDE, MODEL_STRIDE
+from codecsplat_warp.model import CodecSplat, DepthHead, normalized_from_depth
+from codecsplat_warp.nn.config import FEATURE_STRIDE, MODEL_STRIDE, PRESETS, ModelConfig, get_preset
 
 from conftest import DEVICES
 

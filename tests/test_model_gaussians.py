@@ -10,10 +10,8 @@ import torch
 
 from codecsplat_warp.cameras import Cameras, intrinsics_matrix
 from codecsplat_warp.errors import InputError
-from codecsplat_warp.model import (
-    Gaussians, PixelGaussians, depth_from_normalized, map_to_world, normalized_from_depth, quat_multiply,
-    quat_to_rotmat, rotate_sh, rotmat_to_quat, sh_basis,
-)
+from codecsplat_warp.gaussians import Gaussians, quat_multiply, quat_to_rotmat, rotate_sh, rotmat_to_quat, sh_basis
+from codecsplat_warp.model import PixelGaussians, depth_from_normalized, map_to_world, normalized_from_depth
 
 # gsplat 1.5.3's pure-torch rotation and SH code is the independent reference here (installed by the dev extra).
 _gsplat = pytest.importorskip("gsplat.cuda._torch_impl", reason="gsplat 1.5.3 (dev extra) is not installed")

@@ -12,7 +12,7 @@ from plyfile import PlyData, PlyElement
 from codecsplat_warp.errors import DataError
 from codecsplat_warp.export import attribute_names, read_ply, write_ply
 from codecsplat_warp.model.prune import OPACITY_THRESHOLD, prune_transparent
-from codecsplat_warp.model import Gaussians
+from codecsplat_warp.gaussians import Gaussians
 
 
 def random_gaussians(n: int, degree: int, seed: int = 0) -> Gaussians:
@@ -59,7 +59,8 @@ def test_round_trip(tmp_path, degree):
 
 
 def test_round_trip_renders_the_same_image(tmp_path):
-    from codecsplat_warp.model import CodecSplat, get_preset
+    from codecsplat_warp.model import CodecSplat
+    from codecsplat_warp.nn.config import get_preset
     from codecsplat_warp.model.report import example_inputs
 
     model = CodecSplat(get_preset("tiny")).eval()

@@ -18,7 +18,8 @@ from train.stage1 import METRICS_FILE, TrainConfig, lr_factor, make_optimizer, p
 from train.validate import plot_curve, read_metrics, SceneScore
 
 from codecsplat_warp.errors import InputError  # noqa: E402
-from codecsplat_warp.model import CodecSplat, get_preset  # noqa: E402
+from codecsplat_warp.model import CodecSplat
+from codecsplat_warp.nn.config import get_preset  # noqa: E402
 
 
 

@@ -13,7 +13,8 @@ from conftest import needs_lpips
 
 from codecsplat_warp.codec import LAMBDA_MAX, LAMBDA_MIN
 from codecsplat_warp.errors import DataError, InputError
-from codecsplat_warp.model import CodecSplat, get_preset
+from codecsplat_warp.model import CodecSplat
+from codecsplat_warp.nn.config import get_preset
 from codecsplat_warp.model.pretrained import save_pretrained
 from train.checkpoint import latest_checkpoint, load_model_weights, save_checkpoint
 from train.data import DataSpec, make_source

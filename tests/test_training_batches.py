@@ -12,8 +12,9 @@ from conftest import LPIPS_WEIGHTS, needs_lpips
 from codecsplat_warp.cameras import Cameras, intrinsics_matrix
 from codecsplat_warp.errors import CameraError, DataError, InputError
 from codecsplat_warp.evaluate import PROTOCOLS, find_scenes, index_samples
-from codecsplat_warp.model import CodecSplat, ModelConfig, get_preset
-from codecsplat_warp.model.mono import VGGMono
+from codecsplat_warp.model import CodecSplat
+from codecsplat_warp.nn.config import ModelConfig, get_preset
+from codecsplat_warp.nn.mono import VGGMono
 from codecsplat_warp.ops.geometry import nearest_views
 from train.checkpoint import load_matching_weights, read_weights
 from train.data import DataSpec, TrainingBatch, batch_shape, make_source, photometric_jitter, random_resized_crop

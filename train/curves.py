@@ -17,7 +17,7 @@ import json
 import pathlib
 import statistics
 
-from codecsplat_warp.bench.common import format_table
+from codecsplat_warp.measure import format_table
 from codecsplat_warp.errors import InputError
 from codecsplat_warp.export.files import atomic_output, write_text
 

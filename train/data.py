@@ -31,7 +31,7 @@ from torch.nn import functional as F
 from codecsplat_warp.cameras import Cameras
 from codecsplat_warp.data.views import split_context_targets
 from codecsplat_warp.errors import DataError, InputError
-from codecsplat_warp.model.config import MODEL_STRIDE, ModelConfig
+from codecsplat_warp.nn.config import MODEL_STRIDE, ModelConfig
 
 MAX_ZOOM = 1.15
 """Real scenes are resized to cover the batch size times a zoom drawn from [1, MAX_ZOOM], then cropped at random."""

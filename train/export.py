@@ -13,7 +13,8 @@ import argparse
 import pathlib
 
 from codecsplat_warp.errors import InputError
-from codecsplat_warp.model.pretrained import model_id, round_to_half, save_pretrained
+from codecsplat_warp.model.codecsplat import model_id
+from codecsplat_warp.model.pretrained import round_to_half, save_pretrained
 
 from .validate import load_run
 

@@ -45,9 +45,11 @@ from tqdm import tqdm
 
 from codecsplat_warp.device import resolve_device
 from codecsplat_warp.errors import CodecSplatError, InputError
+from codecsplat_warp.gaussians import Gaussians
 from codecsplat_warp.metrics import LPIPS, WEIGHTS_ENV
 from codecsplat_warp.metrics.image import psnr
-from codecsplat_warp.model import CodecSplat, Gaussians, ModelConfig, get_preset
+from codecsplat_warp.model import CodecSplat
+from codecsplat_warp.nn.config import ModelConfig, get_preset
 
 from .checkpoint import (latest_checkpoint, load_checkpoint, load_matching_weights, read_weights,
                          save_checkpoint)

@@ -45,7 +45,8 @@ import torch.distributed as dist
 from codecsplat_warp.codec import LAMBDA_MAX, LAMBDA_MIN
 from codecsplat_warp.errors import DataError, InputError
 from codecsplat_warp.metrics import LPIPS
-from codecsplat_warp.model import CodecSplat, ModelConfig
+from codecsplat_warp.model import CodecSplat
+from codecsplat_warp.nn.config import ModelConfig
 
 from . import stage1
 from .checkpoint import latest_checkpoint, load_model_weights, read_weights

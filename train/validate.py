@@ -25,7 +25,8 @@ from codecsplat_warp.device import resolve_device
 from codecsplat_warp.errors import InputError
 from codecsplat_warp.evaluate import PROTOCOLS, Sample, find_scenes, index_samples, nearest_context_images
 from codecsplat_warp.metrics.image import psnr
-from codecsplat_warp.model import CodecSplat, ModelConfig
+from codecsplat_warp.model import CodecSplat
+from codecsplat_warp.nn.config import ModelConfig
 
 from .checkpoint import latest_checkpoint, read_weights
 from .stage1 import METRICS_FILE

@@ -16,7 +16,7 @@ import torch
 
 from ..errors import BitstreamError, DataError
 from ..export.ply import gaussians_from_attributes, ply_attributes
-from ..model.gaussians import Gaussians
+from ..gaussians import Gaussians
 from .container import DEFLATE_LEVEL, pack, unpack
 from .quantise import dequantise, quantise
 

@@ -26,7 +26,7 @@ import torch
 from PIL import Image
 
 from ..errors import BitstreamError, InputError
-from ..model.gaussians import Gaussians
+from ..gaussians import Gaussians
 from .container import DEFLATE_LEVEL, pack, unpack
 from .kmeans import kmeans
 from .quantise import dequantise, quantise

@@ -33,11 +33,11 @@ import torch
 from ..cameras import Cameras
 from ..codec.latent import no_timer
 from ..errors import DataError, InputError
-from ..model.codecsplat import CodecSplat
-from ..model.config import get_preset
-from ..model.pretrained import load_pretrained, model_id
+from ..measure import format_table, machine_name
+from ..model.codecsplat import CodecSplat, model_id
+from ..model.pretrained import load_pretrained
+from ..nn.config import get_preset
 from ..synthetic import make_rig
-from .common import format_table, machine_name
 
 
 @dataclass(frozen=True)

@@ -38,13 +38,14 @@ import torch
 
 from ..cameras import Cameras, intrinsics_matrix, rigid_inverse
 from ..errors import CameraError, InputError
+from ..export.files import write_json
+from ..measure import format_table, machine_name
 from ..model.heads import depth_from_normalized, normalized_from_depth
 from ..ops.geometry import all_other_views, plane_sweep_cost_volume, reproject_average, unproject
 from ..ops.raster import GAUSSIAN_ARGUMENTS, rasterize
 from ..reference.geometry import cost_volume_reference, reproject_average_reference, unproject_reference
 from ..reference.raster import rasterize_dense
 from ..synthetic import make_rig, random_gaussians, rotation, smooth_depth
-from .common import format_table, machine_name, write_json
 
 # --------------------------------------------------------------------------------------------------
 # Catalog data structures

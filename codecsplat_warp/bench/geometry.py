@@ -15,10 +15,10 @@ import torch
 
 from ..device import set_validation, validation_enabled
 from ..errors import InputError
+from ..measure import cuda_peak_bytes, format_table, machine_name, rss_peak_growth_bytes, time_call
 from ..ops.geometry import all_other_views, reproject_average
 from ..reference.geometry import reproject_average_reference
 from ..synthetic import make_rig, smooth_depth
-from .common import cuda_peak_bytes, format_table, machine_name, rss_peak_growth_bytes, time_call
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ a. **Pruning decoded Gaussians** (:mod:`codecsplat_warp.model.prune`) on real sc
    many are transparent / outside every target frustum, the prune time, the median time of rendering the
    targets with all and with the kept Gaussians, the PLY bytes of both, and the largest difference between
    the two renders (must be float rounding at most: pruning leaves out only what contributes nothing).
-   All timings of a, b and c are medians of interleaved rounds (:func:`~codecsplat_warp.bench.common.interleaved_medians`).
+   All timings of a, b and c are medians of interleaved rounds (:func:`~codecsplat_warp.measure.interleaved_medians`).
 b. **Rasterizer work follows visible Gaussians**: a ``bench raster`` scene (``--offscreen-workload``, default
    the RE10K-like one; also used by c) with 90 % of its Gaussians moved off-screen (behind the camera, or four
    image widths beside it) against all visible; forward and forward+backward time ratios. Target (issue 8):
@@ -43,10 +43,10 @@ from ..codec.bitstream import FLAG_FLOAT64_CAMERAS, HEADER_BYTES, framed_bytes, 
 from ..errors import DataError, InputError
 from ..evaluate import PROTOCOLS, Protocol, find_scenes, scene_samples, select_scenes
 from ..export.ply import encode_ply
+from ..measure import cuda_kernel_ms, format_table, interleaved_medians, machine_name
 from ..model.pretrained import load_pretrained
 from ..model.prune import prune_gaussians
 from ..ops.raster import GAUSSIAN_ARGUMENTS, project_gaussians, rasterize
-from .common import cuda_kernel_ms, format_table, interleaved_medians, machine_name
 from .raster import WORKLOADS, Workload, make_scene, ours_forward, ours_forward_backward
 
 OFFSCREEN_FRACTION = 0.9
@@ -267,7 +267,7 @@ def visible_subset(scene: dict, fraction: float = OFFSCREEN_FRACTION, seed: int 
 def measure_offscreen(scene: dict, device: torch.device, reps: int) -> list[dict]:
     """Forward and forward+backward times with 90 % of the Gaussians off-screen, against all visible (the
     target), and against the visible 10 % alone (what the off-screen 90 % add); on CUDA also the ratio of GPU
-    kernel time (:func:`~codecsplat_warp.bench.common.cuda_kernel_ms`: the work done, without the fixed host
+    kernel time (:func:`~codecsplat_warp.measure.cuda_kernel_ms`: the work done, without the fixed host
     time of a call)."""
     print(f"  b: {OFFSCREEN_FRACTION:.0%} off-screen vs all visible, {len(scene['means']):,d} Gaussians",
           flush=True)

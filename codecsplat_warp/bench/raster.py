@@ -28,13 +28,13 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from ..ops.raster import GAUSSIAN_ARGUMENTS, rasterize
-from ..reference.raster import rasterize_dense
-from ..synthetic import make_rig, smooth_depth
-from .common import (
+from ..measure import (
     cuda_kernel_times, cuda_peak_bytes, format_table, interleaved_medians, machine_name, rss_peak_growth_bytes,
     time_call,
 )  # fmt: skip
+from ..ops.raster import GAUSSIAN_ARGUMENTS, rasterize
+from ..reference.raster import rasterize_dense
+from ..synthetic import make_rig, smooth_depth
 
 
 @dataclass(frozen=True)
@@ -195,7 +195,7 @@ def measure_workload(workload: Workload, device: torch.device, reps: int, scale:
     """Timings, memory and (with gsplat) the comparison for one workload; errors are recorded, not raised.
 
     Ours and gsplat's forward and forward+backward are timed in interleaved rounds
-    (:func:`~codecsplat_warp.bench.common.interleaved_medians`), so that a lent machine's drifting host speed
+    (:func:`~codecsplat_warp.measure.interleaved_medians`), so that a lent machine's drifting host speed
     moves both sides of a ratio alike."""
     scene = make_scene(workload, device, scale)
     row = {"workload": workload.name, "gaussians": scene["means"].shape[0], "size": f"{workload.height}x{workload.width}",
@@ -231,7 +231,7 @@ def measure_workload(workload: Workload, device: torch.device, reps: int, scale:
 def measure_kernels(workload: Workload, device: torch.device, reps: int, scale: float, gsplat: dict | None,
                     top: int) -> dict:  # fmt: skip
     """Per-kernel GPU time of ours (and gsplat's) forward and forward+backward on ``workload``
-    (:func:`~codecsplat_warp.bench.common.cuda_kernel_times`): ``{"ours fwd": {"total_us": .., "kernels": [[name,
+    (:func:`~codecsplat_warp.measure.cuda_kernel_times`): ``{"ours fwd": {"total_us": .., "kernels": [[name,
     us, launches], ...top]}, ...}``, printed as it goes."""
     scene = make_scene(workload, device, scale)
     calls = {"ours fwd": lambda: ours_forward(scene), "ours fwd+bwd": lambda: ours_forward_backward(scene)}

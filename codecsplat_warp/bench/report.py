@@ -16,7 +16,7 @@ torch reference by the tests); a float64 configuration without an affordable tor
 Forward: max and RMS absolute error, relative L2 error, PSNR for images (rasterize RGB, peak 1), validity
 flips of reprojections (samples valid in one precision and not the other, left out of the error as in
 ``bench geometry``). Backward: relative L2 error of the input gradients (largest over inputs). Run time:
-median of repeated runs (:func:`codecsplat_warp.bench.common.time_call`).
+median of repeated runs (:func:`codecsplat_warp.measure.time_call`).
 
 Options that trade accuracy for time (:data:`TRADE_OFF_OPTIONS`: the early-stop transmittance) are measured
 twice. The error (plotted, and compared on the Pareto front with the other rows of the kernel) is against
@@ -49,11 +49,11 @@ from typing import Callable, Sequence
 import torch
 
 from ..errors import CodecSplatError, DataError, InputError
-from ..export.files import atomic_output, write_text
+from ..export.files import atomic_output, write_json, write_text
+from ..measure import format_table, machine_name, time_call
 from ..ops.geometry import inverse_depth_candidates
 from ..ops.raster import GAUSSIAN_ARGUMENTS
 from ..synthetic import make_rig, smooth_depth
-from .common import format_table, machine_name, time_call, write_json
 from .extreme import COST_VOLUME, RASTERIZE, REPROJECT, UNPROJECT, Op, Problem, device_arguments
 from .extreme import forward_backward as _forward_backward
 from .extreme import reference_arguments

@@ -10,9 +10,6 @@
 The encoder and decoder entry points are methods of :class:`codecsplat_warp.model.CodecSplat`.
 """
 
-# The model package imports this one (CodecSplat owns a LatentCodec); importing it first keeps either
-# import order working.
-from .. import model as _model  # noqa: F401  isort: skip
 from .bitstream import (
     FORMAT_VERSION, MAX_PIXELS, MAX_SIDE, MAX_VIEWS, Bitstream, Header, bytes_report, pack_bitstream,
     parse_bitstream,

@@ -36,8 +36,8 @@ import torch
 
 from ..cameras import Cameras, intrinsics_matrix
 from ..errors import BitstreamError, CameraError, InputError
-from ..model.config import MODEL_STRIDE
-from ..model.gaussians import quat_to_rotmat, rotmat_to_quat
+from ..gaussians import quat_to_rotmat, rotmat_to_quat
+from ..nn.config import MODEL_STRIDE
 from .latent import LAMBDA_MAX, LAMBDA_MIN
 
 MAGIC = b"CSPL"

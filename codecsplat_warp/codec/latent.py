@@ -57,8 +57,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..errors import InputError
-from ..model.config import ModelConfig
-from ..model.layers import conv3x3
+from ..nn.config import ModelConfig
+from ..nn.layers import conv3x3
 from . import entropy
 
 LAMBDA_MIN = 16.0

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 
 from ..cameras import Cameras
-from ..model.gaussians import Gaussians
+from ..gaussians import Gaussians
 from .bitstream import Header
 
 

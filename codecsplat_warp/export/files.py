@@ -1,7 +1,7 @@
 """Atomic file output: a result file either appears complete or not at all (interruptions lose nothing).
 
 Everything the command line writes (bitstreams, PLY files, renders, tables, plots) goes through
-:func:`atomic_output` (JSON through :func:`codecsplat_warp.bench.common.write_json`, also atomic): the
+:func:`atomic_output` (JSON through :func:`write_json`): the
 writer fills ``.<name>.tmp-<pid>`` next to the destination, which is moved into place with ``os.replace``
 only when the writer finished without an exception.
 """
@@ -9,6 +9,7 @@ only when the writer finished without an exception.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import pathlib
 from typing import Iterator
@@ -41,3 +42,7 @@ def write_text(path: str | os.PathLike, text: str) -> None:
     with atomic_output(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
 
+
+def write_json(path: str | os.PathLike, payload: dict) -> None:
+    """Write ``payload`` (JSON-serialisable) to ``path`` as JSON indented by 2, atomically."""
+    write_text(path, json.dumps(payload, indent=2))

@@ -11,7 +11,7 @@ One binary little-endian ``vertex`` element with float32 properties, in this ord
 * ``scale_0..2``: natural log of the standard deviations;
 * ``rot_0..3``: the rotation quaternion w, x, y, z (Gaussian frame -> world, unit length).
 
-SH conventions are those of :mod:`codecsplat_warp.model.gaussians` (3DGS/gsplat basis, +0.5 added by the
+SH conventions are those of :mod:`codecsplat_warp.gaussians` (3DGS/gsplat basis, +0.5 added by the
 renderer), so the file renders the same in 3DGS viewers as with :meth:`CodecSplat.render`.
 """
 
@@ -27,7 +27,7 @@ import torch
 from plyfile import PlyData, PlyElement, PlyParseError
 
 from ..errors import DataError
-from ..model.gaussians import Gaussians
+from ..gaussians import Gaussians
 from .files import write_bytes
 
 _OPACITY_EPS = 2.0**-24

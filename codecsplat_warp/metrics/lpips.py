@@ -22,7 +22,7 @@ from torch import nn
 
 from ..device import check_tensor, common_device
 from ..errors import InputError
-from ..model.layers import copy_weights, torchvision_features, vgg16_trunk
+from ..nn.layers import copy_weights, torchvision_features, vgg16_trunk
 
 WEIGHTS_ENV = "CODECSPLAT_LPIPS_WEIGHTS"
 """Environment variable naming the directory that holds the LPIPS safetensors files."""

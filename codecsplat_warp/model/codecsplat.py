@@ -12,9 +12,16 @@ With the codec (``CodecSplat(config, codec=True)``; ``forward(images, cameras, l
     F^_c --DepthHead--> S, D^ ; F^_c + R_post(F^_c, A(F^_c, D^), S) --GSHead(., D^)--> Map 2D->3D --> Gaussians
 
 The decoder side uses only the bitstream: its cameras, lambda and latents; never images or D_enc.
+
+The *model identifier* (:func:`model_id`, 16 hex digits) names the decoder a bitstream needs: a hash of the
+config, the float32 weights and the entropy coder's probability tables. Every bitstream carries it in its
+header, and decoding with another model raises BitstreamError naming both.
 """
 
 from __future__ import annotations
+
+import hashlib
+import json
 
 import numpy as np
 import torch
@@ -22,18 +29,18 @@ from torch import nn
 
 from ..cameras import Cameras
 from ..codec.bitstream import pack_bitstream, parse_bitstream
+from ..codec.entropy import entropy_model_digest
 from ..codec.latent import LatentCodec, Timer, check_lambda, no_timer
 from ..codec.scene import DecodedScene, EncodedScene
 from ..device import check_finite, check_tensor, common_device, resolve_device
 from ..errors import BitstreamError, DeviceMismatchError, InputError
+from ..gaussians import Gaussians
+from ..nn.config import FEATURE_STRIDE, MODEL_STRIDE, ModelConfig
+from ..nn.mono import build_mono_backbone
 from ..ops.raster import rasterize
-from .config import FEATURE_STRIDE, MODEL_STRIDE, ModelConfig
 from .feathead import FeatHead
-from .gaussians import Gaussians, map_to_world
-from .heads import DepthHead, GaussianHead
-from .mono import build_mono_backbone
+from .heads import DepthHead, GaussianHead, map_to_world
 from .mvenc import MonoBackbone, MVEnc, context_neighbours
-from .pretrained import model_id
 from .refine import Refiner
 
 RENDER_NEAR_FRACTION = 0.5
@@ -47,7 +54,7 @@ class CodecSplat(nn.Module):
     """Feed-forward Gaussian generator and scene codec.
 
     Args:
-        config: sizes (see :mod:`.config` presets).
+        config: sizes (see :mod:`codecsplat_warp.nn.config` presets).
         mono_backbone: optional pretrained monocular feature extractor (see :class:`.mvenc.MonoBackbone`);
             default: the one ``config.mono`` names (random weights until a state dict or
             ``load_imagenet`` fills them), or none.
@@ -260,6 +267,31 @@ class CodecSplat(nn.Module):
         if bool(images.min() < 0) or bool(images.max() > 1):
             raise InputError("images must hold values in [0, 1]")
         return images.to(param.dtype)
+
+
+def weights_digest(model: torch.nn.Module) -> str:
+    """SHA-256 hex of a model's config and state dict (names, shapes, float32 little-endian values).
+
+    Cached on the model until a tensor changes (new storage or an in-place update such as an optimizer step).
+    """
+    state = model.state_dict()
+    key = tuple((name, t.data_ptr(), t._version, str(t.device), t.dtype) for name, t in state.items())
+    cached = getattr(model, "_weights_digest_cache", None)
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    sha = hashlib.sha256(json.dumps(model.config.to_dict(), sort_keys=True).encode())
+    for name in sorted(state):
+        tensor = state[name].detach().to("cpu", torch.float32).contiguous()
+        sha.update(f"{name}:{tuple(tensor.shape)}".encode())
+        sha.update(tensor.numpy().astype("<f4").tobytes())
+    digest = sha.hexdigest()
+    model._weights_digest_cache = (key, digest)
+    return digest
+
+
+def model_id(model: torch.nn.Module) -> str:
+    """16 hex digits naming the decoder: hash of :func:`weights_digest` and the entropy coder's tables."""
+    return hashlib.sha256((weights_digest(model) + entropy_model_digest()).encode()).hexdigest()[:16]
 
 
 def render_depth_range(cameras: Cameras) -> tuple[float, float]:

@@ -22,8 +22,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from .config import FEATURE_STRIDE, ModelConfig
-from .layers import conv_stack, resize
+from ..nn.config import FEATURE_STRIDE, ModelConfig
+from ..nn.layers import conv_stack, resize
 
 
 class FeatHead(nn.Module):

@@ -1,4 +1,4 @@
-"""Depth head (paper Eqs. 7-8, 13) and Gaussian head (Eq. 9).
+"""Depth head (paper Eqs. 7-8, 13), Gaussian head (Eq. 9) and the 2D->3D map (Eq. 10).
 
 Normalised inverse depth ``S`` in [0, 1] maps to metric depth inside the per-view bounds:
 ``D = 1 / (1/f + S (1/n - 1/f))`` (S = 0 is the far bound f, S = 1 the near bound n), and back by
@@ -15,8 +15,10 @@ from torch.nn import functional as F
 
 from ..cameras import Cameras
 from ..errors import InputError
-from .config import FEATURE_STRIDE, ModelConfig
-from .layers import conv3x3, conv_stack
+from ..gaussians import Gaussians, quat_multiply, rotate_sh, rotmat_to_quat
+from ..nn.config import FEATURE_STRIDE, ModelConfig
+from ..nn.layers import conv3x3, conv_stack
+from ..ops.geometry import unproject
 
 SH_HIGHER_ORDER_SCALE = 0.1
 """Raw SH outputs of degree l >= 1 are multiplied by ``0.1 * 0.25**l`` (DepthSplat's sh_mask): starts view-independent."""
@@ -143,3 +145,39 @@ class GaussianHead(nn.Module):
             quats=F.normalize(quat_raw + identity, dim=-1, eps=1e-6),
             sh=sh,
         )
+
+
+# --------------------------------------------------------------------------------------------------
+# Eq. 10: pixel-aligned camera-space predictions to world space
+#
+# * centres: the pixel centre shifted by the predicted sub-pixel offset, unprojected at its depth
+#   (:func:`codecsplat_warp.ops.geometry.unproject` plus the exact in-plane shift ``R_c2w (du d/fx, dv d/fy, 0)``);
+# * rotations: ``q_world = q(R_c2w) * q_cam``;
+# * SH colours: rotated by ``R_c2w`` per degree, so that evaluating them with world-space view directions
+#   gives the colour the head predicted for the corresponding camera-space directions;
+# * scales and opacities are frame-independent.
+def map_to_world(pixels: PixelGaussians, depth: torch.Tensor, cameras: Cameras) -> Gaussians:
+    """Eq. 10: pixel-aligned camera-space Gaussians [V,H,W,...] and depth [V,H,W] -> world :class:`Gaussians`.
+
+    N = V*H*W Gaussians ordered view-major, then row, then column.
+    """
+    V, H, W = depth.shape
+    if (H, W) != (cameras.height, cameras.width) or V != cameras.num_views:
+        raise InputError(f"depth must be [V={cameras.num_views},{cameras.height},{cameras.width}] to match the "
+                         f"cameras, got {tuple(depth.shape)}")
+    c2w = cameras.c2w.to(depth.dtype)
+    rot = c2w[:, :3, :3]
+    focal = torch.stack([cameras.K[:, 0, 0], cameras.K[:, 1, 1]], dim=-1).to(depth.dtype)  # [V,2]
+    shift = pixels.offsets.to(depth.dtype) * depth[..., None] / focal[:, None, None, :]  # [V,H,W,2] camera xy
+    shift3 = torch.cat([shift, torch.zeros_like(shift[..., :1])], dim=-1)
+    means = unproject(depth, cameras) + torch.einsum("vij,vhwj->vhwi", rot, shift3)
+    cam_quats = rotmat_to_quat(rot)[:, None, None, :].to(pixels.quats.dtype)
+    quats = quat_multiply(cam_quats.expand_as(pixels.quats), pixels.quats)
+    sh = rotate_sh(pixels.sh, rot.to(pixels.sh.dtype))
+    return Gaussians(
+        means=means.reshape(-1, 3),
+        quats=quats.reshape(-1, 4),
+        scales=pixels.scales.reshape(-1, 3),
+        opacities=pixels.opacities.reshape(-1),
+        sh=sh.reshape(-1, sh.shape[-2], 3),
+    )

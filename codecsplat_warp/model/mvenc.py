@@ -28,10 +28,10 @@ from torch.nn import functional as F
 
 from ..cameras import Cameras
 from ..errors import InputError
+from ..nn.config import MODEL_STRIDE, ModelConfig
+from ..nn.layers import ResidualBlock, conv3x3, conv_stack, group_norm, resize, zero_conv
 from ..ops.geometry import inverse_depth_candidates, nearest_views, plane_sweep_cost_volume
-from .config import MODEL_STRIDE, ModelConfig
 from .heads import depth_from_normalized
-from .layers import ResidualBlock, conv3x3, conv_stack, group_norm, resize, zero_conv
 
 LOGIT_EPS = 1e-4
 """Clamp of the coarse normalised inverse depth before taking its logit (keeps the refinement finite)."""

@@ -2,22 +2,21 @@
 
 A pretrained file is ONE safetensors file: every weight in float32, or in float16 when written with
 ``save_pretrained(half=True)`` (weights first rounded to float16 values by :func:`round_to_half`), and in its
-metadata the format name, the :class:`~codecsplat_warp.model.config.ModelConfig` as JSON, the SHA-256 of the
+metadata the format name, the :class:`~codecsplat_warp.nn.config.ModelConfig` as JSON, the SHA-256 of the
 weights (checked on load) and the model identifier. Loading gives a float32 model either way. The re10k/dl3dv
 presets hold about 4.1 M parameters, i.e. 15.7 MiB in float32 (7.9 MiB in float16), within the 16 MiB a file
 may have. The shipped default at :data:`DEFAULT_CHECKPOINT` is stored in float16 (``python -m train.export
 ... --half``, 7.9 MiB; a model with the VGG16 mono prior holds about 5.9 M parameters, 11.3 MiB in float16,
 which would not fit in float32).
 
-The *model identifier* (:func:`model_id`, 16 hex digits) names the decoder a bitstream needs: a hash of the
-config, the weights as float32 values (so a float16 file and the float32 model it loads into share it) and
-the entropy coder's probability tables. Every bitstream carries it in its header, and decoding with another
-model raises BitstreamError naming both.
+The *model identifier* (:func:`~codecsplat_warp.model.codecsplat.model_id`, next to the network it names: a
+hash of the config, the weights as float32 values, so a float16 file and the float32 model it loads into share
+it, and the entropy coder's probability tables) is stored in the file's metadata too; every bitstream carries
+it in its header, and decoding with another model raises BitstreamError naming both.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import pathlib
@@ -26,40 +25,15 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
-from ..codec.entropy import entropy_model_digest
 from ..device import resolve_device
 from ..errors import DataError, InputError
-from .config import ModelConfig
+from ..nn.config import ModelConfig
+from .codecsplat import CodecSplat, model_id, weights_digest
 
 DEFAULT_CHECKPOINT = pathlib.Path(__file__).resolve().parents[1] / "assets" / "codecsplat-default.safetensors"
 """The checkpoint shipped with the package (``load_pretrained()`` with no path)."""
 
 FORMAT = "codecsplat-pretrained-v1"
-
-
-def weights_digest(model: torch.nn.Module) -> str:
-    """SHA-256 hex of a model's config and state dict (names, shapes, float32 little-endian values).
-
-    Cached on the model until a tensor changes (new storage or an in-place update such as an optimizer step).
-    """
-    state = model.state_dict()
-    key = tuple((name, t.data_ptr(), t._version, str(t.device), t.dtype) for name, t in state.items())
-    cached = getattr(model, "_weights_digest_cache", None)
-    if cached is not None and cached[0] == key:
-        return cached[1]
-    sha = hashlib.sha256(json.dumps(model.config.to_dict(), sort_keys=True).encode())
-    for name in sorted(state):
-        tensor = state[name].detach().to("cpu", torch.float32).contiguous()
-        sha.update(f"{name}:{tuple(tensor.shape)}".encode())
-        sha.update(tensor.numpy().astype("<f4").tobytes())
-    digest = sha.hexdigest()
-    model._weights_digest_cache = (key, digest)
-    return digest
-
-
-def model_id(model: torch.nn.Module) -> str:
-    """16 hex digits naming the decoder: hash of :func:`weights_digest` and the entropy coder's tables."""
-    return hashlib.sha256((weights_digest(model) + entropy_model_digest()).encode()).hexdigest()[:16]
 
 
 def round_to_half(model: torch.nn.Module) -> torch.nn.Module:
@@ -109,8 +83,6 @@ def load_pretrained(path=None, device=None):
     Raises:
         DataError: the file is missing, unreadable, of another format, or its weights do not match their hash.
     """
-    from .codecsplat import CodecSplat  # the network module imports this one (model_id)
-
     path = pathlib.Path(path) if path is not None else DEFAULT_CHECKPOINT
     if not path.is_file():
         hint = (" (the shipped default model is not part of this installation yet: train one with train.stage2 "

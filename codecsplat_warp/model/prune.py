@@ -33,10 +33,10 @@ from dataclasses import asdict, dataclass
 import torch
 
 from ..cameras import Cameras
+from ..gaussians import Gaussians
 from ..kernels.raster_project import ALPHA_THRESHOLD
 from ..ops.raster import project_gaussians
 from .codecsplat import render_depth_range
-from .gaussians import Gaussians
 
 OPACITY_THRESHOLD = ALPHA_THRESHOLD
 """Gaussians with an opacity below this (1/255) contribute nothing visible: the rasterizer skips them."""

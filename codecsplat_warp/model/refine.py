@@ -15,10 +15,10 @@ import torch
 from torch import nn
 
 from ..cameras import Cameras
+from ..nn.config import ModelConfig
+from ..nn.layers import conv_stack, inverse_depth_to_grid
 from ..ops.geometry import reproject_average
-from .config import ModelConfig
 from .heads import normalized_from_depth
-from .layers import conv_stack, inverse_depth_to_grid
 
 
 class Refiner(nn.Module):

@@ -17,7 +17,7 @@ import torch
 from ..cameras import Cameras, intrinsics_matrix
 from ..device import resolve_device
 from .codecsplat import CodecSplat
-from .config import PRESETS, ModelConfig
+from ..nn.config import PRESETS, ModelConfig
 
 
 def parameter_count(model: torch.nn.Module) -> int:

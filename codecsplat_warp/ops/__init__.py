@@ -1,1 +1,20 @@
-"""Torch-facing differentiable ops over the Warp kernels (CPU and CUDA, zero-copy)."""
+"""Torch-facing differentiable ops over the Warp kernels (CPU and CUDA, zero-copy).
+
+* :mod:`.geometry`: :func:`unproject` (depth [V,H,W] -> world points [V,H,W,3]), :func:`reproject_average`
+  (paper Eq. 3), :func:`plane_sweep_cost_volume`, and the view-selection helpers :func:`inverse_depth_candidates`,
+  :func:`all_other_views`, :func:`nearest_views`;
+* :mod:`.raster`: :func:`rasterize` (3D Gaussians -> images, gsplat's conventions, with a backward) and
+  :func:`project_gaussians` (the projection step alone, -> :class:`ProjectedGaussians`), :class:`RasterMeta`.
+
+Shapes, dtypes and units are in each function's docstring.
+"""
+
+from .geometry import (
+    all_other_views, inverse_depth_candidates, nearest_views, plane_sweep_cost_volume, reproject_average, unproject,
+)
+from .raster import ProjectedGaussians, RasterMeta, project_gaussians, rasterize
+
+__all__ = [
+    "all_other_views", "inverse_depth_candidates", "nearest_views", "plane_sweep_cost_volume", "reproject_average",
+    "unproject", "ProjectedGaussians", "RasterMeta", "project_gaussians", "rasterize",
+]

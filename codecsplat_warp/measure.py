@@ -1,4 +1,6 @@
-"""Timing, memory and table helpers shared by the benchmarks (``codecsplat bench ...``).
+"""Timing, memory, machine-name and table helpers shared by the benchmarks (``codecsplat bench ...``), the
+evaluation (``codecsplat eval``), the self-check and the training curves. Imports nothing of the package, so
+every layer may use it.
 
 Timing follows the usual GPU method: warm-up runs first (Warp module load, allocator warm-up), then the
 median of repeated runs; on CUDA each run is bracketed by CUDA events on the current stream, on the CPU by
@@ -8,7 +10,6 @@ median of repeated runs; on CUDA each run is bracketed by CUDA events on the cur
 from __future__ import annotations
 
 import gc
-import json
 import os
 import platform
 import statistics
@@ -154,11 +155,3 @@ def format_table(rows: Sequence[dict], columns: Sequence[tuple[str, str, str]]) 
             cells.append("n/a" if value is None else format(value, spec))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
-
-
-def write_json(path: str | os.PathLike, payload: dict) -> None:
-    """Write ``payload`` as indented JSON, atomically (temp file then rename)."""
-    tmp = f"{path}.tmp"
-    with open(tmp, "w") as fh:
-        json.dump(payload, fh, indent=2)
-    os.replace(tmp, path)

@@ -1,16 +1,15 @@
-"""3D Gaussians and the 2D->3D map (paper Eq. 10): pixel-aligned camera-space predictions to world space.
+"""3D Gaussians in world space, and the rotation (quaternion) and spherical-harmonics helpers they use.
 
-Everything a Gaussian head predicts in a camera's frame is moved to world space here:
+Shared by the network (:mod:`codecsplat_warp.model`, whose Eq. 10 map :func:`codecsplat_warp.model.heads.map_to_world`
+builds :class:`Gaussians` from pixel-aligned camera-space predictions), the codec's bitstream (camera
+rotations as quaternions), the exporters and the baselines.
 
-* centres: the pixel centre shifted by the predicted sub-pixel offset, unprojected at its depth
-  (:func:`codecsplat_warp.ops.geometry.unproject` plus the exact in-plane shift ``R_c2w (du d/fx, dv d/fy, 0)``);
-* rotations: ``q_world = q(R_c2w) * q_cam`` (forgetting this is a known bug in exported feed-forward PLYs);
-* SH colours: rotated by ``R_c2w`` per degree, so that evaluating them with world-space view directions
-  gives the colour the head predicted for the corresponding camera-space directions;
-* scales and opacities are frame-independent.
+Conventions:
 
-SH conventions are those of 3DGS / gsplat: colour = sum_k sh[k] * Y_k(dir) (+0.5 added by the renderer),
-real basis ordered as in :func:`sh_basis`.
+* rotations: unit quaternions (w,x,y,z), Gaussian frame -> world; ``q_world = q(R_c2w) * q_cam``
+  (:func:`quat_multiply`), forgetting which is a known bug in exported feed-forward PLYs;
+* SH colours are those of 3DGS / gsplat: colour = sum_k sh[k] * Y_k(dir) (+0.5 added by the renderer),
+  real basis ordered as in :func:`sh_basis`; :func:`rotate_sh` re-expresses them in a rotated frame.
 """
 
 from __future__ import annotations
@@ -19,11 +18,8 @@ from dataclasses import dataclass, fields
 
 import torch
 
-from ..cameras import Cameras
-from ..device import check_tensor
-from ..errors import InputError
-from ..ops.geometry import unproject
-from .heads import PixelGaussians
+from .device import check_tensor
+from .errors import InputError
 
 _ANY_FLOAT = (torch.float32, torch.float64, torch.float16, torch.bfloat16)
 """Float dtypes a Gaussians field may hold (half types appear under autocast); only shapes are constrained."""
@@ -182,32 +178,3 @@ def rotate_sh(sh: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
     M = sh_rotation_matrices(R, degree).to(sh.dtype)
     M = M.reshape(M.shape[0], *([1] * (sh.dim() - 3)), *M.shape[1:])
     return M @ sh
-
-
-# --------------------------------------------------------------------------------------------------
-# Eq. 10
-def map_to_world(pixels: PixelGaussians, depth: torch.Tensor, cameras: Cameras) -> Gaussians:
-    """Eq. 10: pixel-aligned camera-space Gaussians [V,H,W,...] and depth [V,H,W] -> world :class:`Gaussians`.
-
-    N = V*H*W Gaussians ordered view-major, then row, then column.
-    """
-    V, H, W = depth.shape
-    if (H, W) != (cameras.height, cameras.width) or V != cameras.num_views:
-        raise InputError(f"depth must be [V={cameras.num_views},{cameras.height},{cameras.width}] to match the "
-                         f"cameras, got {tuple(depth.shape)}")
-    c2w = cameras.c2w.to(depth.dtype)
-    rot = c2w[:, :3, :3]
-    focal = torch.stack([cameras.K[:, 0, 0], cameras.K[:, 1, 1]], dim=-1).to(depth.dtype)  # [V,2]
-    shift = pixels.offsets.to(depth.dtype) * depth[..., None] / focal[:, None, None, :]  # [V,H,W,2] camera xy
-    shift3 = torch.cat([shift, torch.zeros_like(shift[..., :1])], dim=-1)
-    means = unproject(depth, cameras) + torch.einsum("vij,vhwj->vhwi", rot, shift3)
-    cam_quats = rotmat_to_quat(rot)[:, None, None, :].to(pixels.quats.dtype)
-    quats = quat_multiply(cam_quats.expand_as(pixels.quats), pixels.quats)
-    sh = rotate_sh(pixels.sh, rot.to(pixels.sh.dtype))
-    return Gaussians(
-        means=means.reshape(-1, 3),
-        quats=quats.reshape(-1, 4),
-        scales=pixels.scales.reshape(-1, 3),
-        opacities=pixels.opacities.reshape(-1),
-        sh=sh.reshape(-1, sh.shape[-2], 3),
-    )

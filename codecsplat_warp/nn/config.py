@@ -22,7 +22,7 @@ MODEL_STRIDE = 4
 """Image height and width must be multiples of this (the matching grid is 1/4 resolution)."""
 
 FEATURE_STRIDE = 2
-"""The Gaussian-generation feature F_g lives on the 1/2-resolution grid (see :mod:`.feathead`)."""
+"""The Gaussian-generation feature F_g lives on the 1/2-resolution grid (see :mod:`codecsplat_warp.model.feathead`)."""
 
 
 @dataclass(frozen=True)
@@ -54,7 +54,7 @@ class ModelConfig:
             ``2**(L+1-l)`` of the feature grid (the finest at stride 4, i.e. 1/8 of the image).
         lambda_channels: size of the rate embedding e_lambda.
         mono: pretrained monocular backbone in MVEnc's mono slot: ``"none"`` or a name of
-            :data:`codecsplat_warp.model.mono.MONO_BACKBONES` (``"vgg16"``: frozen ImageNet VGG16 to relu3_3).
+            :data:`codecsplat_warp.nn.mono.MONO_BACKBONES` (``"vgg16"``: frozen ImageNet VGG16 to relu3_3).
     """
 
     name: str = "custom"
