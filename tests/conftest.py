@@ -11,6 +11,9 @@ os.environ.setdefault("WARP_CACHE_PATH", str(ROOT / "build" / "warp-cache"))
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
+from codecsplat_warp.model import CodecSplat  # noqa: E402
+from codecsplat_warp.nn.config import get_preset  # noqa: E402
+
 CUDA = torch.cuda.is_available()
 
 DEVICES = [
@@ -44,3 +47,16 @@ needs_lpips = pytest.mark.skipif(
     LPIPS_WEIGHTS is None or not (LPIPS_WEIGHTS / "lpips_vgg.safetensors").is_file(),
     reason="CODECSPLAT_LPIPS_WEIGHTS is unset or lacks lpips_vgg.safetensors (.ci/run sets ../shared/weights)",
 )
+
+
+POSTERIOR_GAIN = 30.0
+"""An untrained codec's latents round to zero; scaling its posterior makes every test code real symbols."""
+
+
+def tiny_coding_model(seed: int):
+    """A ``tiny`` CodecSplat with its codec, seeded with ``seed``, in eval mode, on the CPU, with the codec's
+    posterior scaled by :data:`POSTERIOR_GAIN` (:meth:`LatentCodec.scale_posterior`)."""
+    torch.manual_seed(seed)
+    model = CodecSplat(get_preset("tiny"), codec=True).eval()
+    model.codec.scale_posterior(POSTERIOR_GAIN)
+    return model

@@ -9,6 +9,7 @@ import json
 import pytest
 import torch
 from safetensors import safe_open
+from conftest import tiny_coding_model
 from safetensors.torch import save_file
 
 from codecsplat_warp.codec import LAMBDA_MAX, LAMBDA_MIN, DecodedScene, bytes_report, parse_bitstream
@@ -20,8 +21,6 @@ from codecsplat_warp.model.codecsplat import model_id
 from codecsplat_warp.model.pretrained import DEFAULT_CHECKPOINT, load_pretrained, round_to_half, save_pretrained
 
 TINY = get_preset("tiny")
-POSTERIOR_GAIN = 30.0
-"""An untrained codec's latents round to zero; scaling its posterior makes every test code real symbols."""
 
 
 def _scene(height: int = 32, width: int = 48, seed: int = 3):
@@ -29,19 +28,9 @@ def _scene(height: int = 32, width: int = 48, seed: int = 3):
     return s.images.float() / 255.0, s.cameras.to(dtype=torch.float32)
 
 
-def _model(seed: int = 0) -> CodecSplat:
-    torch.manual_seed(seed)
-    model = CodecSplat(TINY, codec=True).eval()
-    with torch.no_grad():
-        for block in model.codec.top_down.blocks:
-            block.posterior[-1].weight.mul_(POSTERIOR_GAIN)
-            block.posterior[-1].bias.mul_(POSTERIOR_GAIN)
-    return model
-
-
 @pytest.fixture(scope="module")
 def coded():
-    model = _model()
+    model = tiny_coding_model(0)
     images, cameras = _scene()
     return model, images, cameras, model.encode_scene(images, cameras, 64.0)
 
@@ -77,7 +66,7 @@ def test_decoding_in_float64_and_with_other_thread_counts_gives_the_same_symbols
         single = model.decode_scene(encoded.data)
     finally:
         torch.set_num_threads(threads)
-    double = _model().double()
+    double = tiny_coding_model(0).double()
     assert model_id(double) == model_id(model), "the identifier names float32 weights, whatever the compute dtype"
     in_float64 = double.decode_scene(encoded.data)
     for other in (single, in_float64):
@@ -87,7 +76,7 @@ def test_decoding_in_float64_and_with_other_thread_counts_gives_the_same_symbols
 
 
 def test_estimated_rate_matches_coded_bytes():
-    model = _model()
+    model = tiny_coding_model(0)
     images, cameras = _scene(64, 96, seed=5)
     for lam in (LAMBDA_MIN, LAMBDA_MAX):
         encoded = model.encode_scene(images, cameras, lam)
@@ -101,7 +90,7 @@ def test_estimated_rate_matches_coded_bytes():
 
 def test_foreign_and_corrupt_bitstreams_are_refused(coded):
     model, _, _, encoded = coded
-    other = _model(seed=1)
+    other = tiny_coding_model(seed=1)
     with pytest.raises(BitstreamError, match=f"{model_id(model)}.*{model_id(other)}"):
         other.decode_scene(encoded.data)
     corrupted = bytearray(encoded.data)
@@ -113,7 +102,7 @@ def test_foreign_and_corrupt_bitstreams_are_refused(coded):
 
 
 def test_model_id_follows_the_weights():
-    model = _model()
+    model = tiny_coding_model(0)
     before = model_id(model)
     assert model_id(model) == before and len(before) == 16
     with torch.no_grad():
@@ -122,7 +111,7 @@ def test_model_id_follows_the_weights():
 
 
 def test_encoder_input_checks():
-    model = _model()
+    model = tiny_coding_model(0)
     images, cameras = _scene()
     with pytest.raises(InputError, match="lambda"):
         model.encode(images, cameras, 8.0)
@@ -135,7 +124,7 @@ def test_encoder_input_checks():
 
 
 def test_training_pass_gives_a_rate_and_gradients_to_every_codec_module():
-    model = _model().train()
+    model = tiny_coding_model(0).train()
     images, cameras = _scene()
     out = model(images, cameras, lam=100.0)
     assert out["F_hat"].shape == out["F_c"].shape and out["S"].shape == out["D_hat"].shape == (2, 32, 48)
@@ -209,9 +198,9 @@ def test_decode_refuses_another_device_than_the_models(coded):
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU visible to torch")
 def test_bitstream_encoded_on_cuda_decodes_on_cpu_to_the_same_symbols():
     images, cameras = _scene(64, 96, seed=5)
-    gpu = _model().cuda()
+    gpu = tiny_coding_model(0).cuda()
     encoded = gpu.encode_scene(images.cuda(), cameras.to("cuda"), 300.0)
-    on_cpu = _model().decode_scene(encoded.data)
+    on_cpu = tiny_coding_model(0).decode_scene(encoded.data)
     on_gpu = gpu.decode_scene(encoded.data)
     for coded, cpu, cuda in zip(encoded.latents, on_cpu.latents, on_gpu.latents):
         assert torch.equal(coded, cpu) and torch.equal(coded, cuda.cpu())

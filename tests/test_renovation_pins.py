@@ -12,14 +12,11 @@ import hashlib
 
 import pytest
 import torch
+from conftest import tiny_coding_model
 
 from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
-from codecsplat_warp.model import CodecSplat
-from codecsplat_warp.nn.config import get_preset
 
 SEED = 1234
-POSTERIOR_GAIN = 30.0
-"""An untrained codec's latents round to zero; scaling its posterior makes the bitstream code real symbols."""
 
 PINNED = {
     "state_dict": "72b97d81585b32caf06c17db357e1ff03e02e4cafd6279b7042747928113de30",
@@ -52,12 +49,7 @@ def hashes() -> dict[str, str]:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # a fixed reduction order
     try:
-        torch.manual_seed(SEED)
-        model = CodecSplat(get_preset("tiny"), codec=True).eval()
-        with torch.no_grad():
-            for block in model.codec.top_down.blocks:
-                block.posterior[-1].weight.mul_(POSTERIOR_GAIN)
-                block.posterior[-1].bias.mul_(POSTERIOR_GAIN)
+        model = tiny_coding_model(SEED)
         scene = procedural_scene(5, ProceduralConfig(width=48, height=32, num_views=3, texture_size=16))
         images = scene.images.float() / 255.0
         cameras = scene.cameras.to(dtype=torch.float32)

@@ -132,10 +132,7 @@ def build_model(shape: Shape, args: argparse.Namespace, device: torch.device) ->
         return load_pretrained(args.checkpoint, device)
     torch.manual_seed(args.seed)
     model = CodecSplat(get_preset(shape.preset), codec=True).eval()
-    with torch.no_grad():
-        for block in model.codec.top_down.blocks:
-            block.posterior[-1].weight.mul_(args.posterior_gain)
-            block.posterior[-1].bias.mul_(args.posterior_gain)
+    model.codec.scale_posterior(args.posterior_gain)
     return model.to(device)
 
 

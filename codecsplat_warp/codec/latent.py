@@ -370,6 +370,17 @@ class LatentCodec(nn.Module):
         self.synthesis = Synthesis(config)
         self._exact: tuple | None = None  # (weights key, float64 copy), see _float64_prior_path
 
+    @torch.no_grad()
+    def scale_posterior(self, gain: float) -> None:
+        """Multiply every level's posterior mean (its last layer's weight and bias) by ``gain``, in place.
+
+        An untrained codec's posterior means are small, so they round to zero symbols; benchmarks and tests
+        of random-weight models scale them (by ~30) so that the coder codes real symbols.
+        """
+        for block in self.top_down.blocks:
+            block.posterior[-1].weight.mul_(gain)
+            block.posterior[-1].bias.mul_(gain)
+
     def forward(self, feature: torch.Tensor, lam: float) -> CodecOutput:
         """Differentiable pass: F_c [V,C_F,h,w] -> :class:`CodecOutput`. In training mode the quantisation
         is noisy (:class:`NoisyQuantizer`), in eval mode it is the coder's (:class:`RoundingQuantizer`)."""

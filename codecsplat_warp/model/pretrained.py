@@ -1,4 +1,4 @@
-"""Pretrained CodecSplat files and model identifiers.
+"""Pretrained CodecSplat files: writing, reading and the shipped default.
 
 A pretrained file is ONE safetensors file: every weight in float32, or in float16 when written with
 ``save_pretrained(half=True)`` (weights first rounded to float16 values by :func:`round_to_half`), and in its
@@ -9,10 +9,8 @@ may have. The shipped default at :data:`DEFAULT_CHECKPOINT` is stored in float16
 ... --half``, 7.9 MiB; a model with the VGG16 mono prior holds about 5.9 M parameters, 11.3 MiB in float16,
 which would not fit in float32).
 
-The *model identifier* (:func:`~codecsplat_warp.model.codecsplat.model_id`, next to the network it names: a
-hash of the config, the weights as float32 values, so a float16 file and the float32 model it loads into share
-it, and the entropy coder's probability tables) is stored in the file's metadata too; every bitstream carries
-it in its header, and decoding with another model raises BitstreamError naming both.
+The model identifier (:func:`~codecsplat_warp.model.codecsplat.model_id`)
+hashes the weights as float32 values, so a float16 file and the float32 model it loads into share it.
 """
 
 from __future__ import annotations
