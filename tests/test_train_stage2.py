@@ -69,6 +69,29 @@ def test_codec_init_copies_every_stage2_module_over_the_stage1_start(tmp_path):
                                               codec_init=str(tmp_path / "s1")))
 
 
+def test_codec_layout_options_grow_the_codec_init_codec_into_finer_levels(tmp_path):
+    _stage1_run(tmp_path / "s1")
+    torch.manual_seed(11)
+    donor = CodecSplat(TINY, codec=True)
+    save_pretrained(donor, tmp_path / "donor.safetensors")
+    config = Stage2Config(init=str(tmp_path / "s1"), out=str(tmp_path / "s2"), codec_latent_channels="4,8,3",
+                          codec_finest_stride=2, codec_init=str(tmp_path / "donor.safetensors"))
+    model_config = run_model_config(config)
+    assert (model_config.codec_latent_channels, model_config.codec_finest_stride) == ((4, 8, 3), 2)
+    model = build_stage2_model(model_config, config)
+    grown = model.state_dict()
+    for name, value in donor.codec.top_down.blocks[1].state_dict().items():
+        assert torch.equal(grown[f"codec.top_down.blocks.1.{name}"], value), name
+    assert torch.equal(grown["codec.top_down.ups.1.conv.weight"], donor.codec.synthesis.ups[0].conv.weight)
+    assert torch.equal(grown["codec.synthesis.ups.0.conv.weight"], donor.codec.synthesis.ups[1].conv.weight)
+    assert not grown["codec.top_down.blocks.2.merge.weight"].any()
+    with pytest.raises(DataError, match="holds no codec"):  # levels that are not the donor's plus finer ones
+        wrong = Stage2Config(**{**config.__dict__, "codec_latent_channels": "4,7,3", "out": str(tmp_path / "s3")})
+        build_stage2_model(run_model_config(wrong), wrong)
+    with pytest.raises(InputError, match="comma-separated"):
+        run_model_config(Stage2Config(init=str(tmp_path / "s1"), out=str(tmp_path / "s4"), codec_latent_channels="4;8"))
+
+
 def test_lambda_is_log_uniform_and_reproducible_per_step_and_rank():
     draws = [sample_lambda(0, step, 0) for step in range(400)]
     assert all(LAMBDA_MIN <= lam <= LAMBDA_MAX for lam in draws)

@@ -5,8 +5,10 @@ stage 1 trained as an auxiliary on F_c) are copied, and the post-codec refiner R
 the pre-codec refiner R_pre (same shapes, same job on a feature that should look like F_c). ``--codec-init
 MODEL_FILE_OR_RUN`` instead warm-starts all three stage-2 modules (latent codec, decoder depth head and R_post)
 from another model's (the shipped default, say: continuing its stage 2 on a backbone that stage 1 trained
-further). Only the codec, the depth head and R_post train; everything else is frozen. Per step, lambda is drawn
-log-uniformly from [16, 1024] and the loss is
+further). ``--codec-latent-channels 16,24,32,16 --codec-finest-stride 2`` gives the new run's codec other
+latent levels than the init run's; a ``--codec-init`` codec with the same levels minus the finer ones is then
+grown into it (:meth:`LatentCodec.grow_from`). Only the codec, the depth head and R_post train; everything
+else is frozen. Per step, lambda is drawn log-uniformly from [16, 1024] and the loss is
 
     (lambda / 1024) * [D_render + gamma * |S - S_enc|_1 + alpha(step) * |F^_c - F_c|^2 / |F_c|^2] + beta * R
 
@@ -34,6 +36,7 @@ The training loop, checkpoints, resumption, TensorBoard, metrics.jsonl, bf16 and
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import pathlib
@@ -80,6 +83,8 @@ class Stage2Config(stage1.TrainConfig):
     feature_weight: float = 0.0
     feature_weight_final: float = 0.0
     feature_decay_steps: int = 1
+    codec_latent_channels: str = ""
+    codec_finest_stride: int = 0
 
 
 def rate_weight(config: Stage2Config, model_config: ModelConfig) -> float:
@@ -197,16 +202,54 @@ def load_codec_weights(model: CodecSplat, source) -> None:
         try:
             getattr(model, name).load_state_dict(tensors)
         except RuntimeError as exc:
-            raise DataError(f"--codec-init {source} holds no {name} of this model's shapes: {exc}") from None
+            if name != "codec" or not _grow_codec(model, tensors):
+                raise DataError(f"--codec-init {source} holds no {name} of this model's shapes: {exc}") from None
+
+
+def _grow_codec(model: CodecSplat, state: dict[str, torch.Tensor]) -> bool:
+    """Grow the codec ``state`` (of a codec with fewer, coarser levels) into ``model.codec``; whether it fit.
+    The source's levels are read off its tensors: the channels from each level's gain, the finest stride
+    from its number of synthesis upsamplings."""
+    levels = sorted({int(k.split(".")[2]) for k in state if k.startswith("top_down.blocks.")})
+    ups = {int(k.split(".")[2]) for k in state if k.startswith("synthesis.ups.")}
+    if not levels or not ups:
+        return False
+    source = dataclasses.replace(
+        model.config, codec_latent_channels=tuple(state[f"top_down.blocks.{l}.gain.bias"].numel() for l in levels),
+        codec_finest_stride=2 ** len(ups))
+    try:
+        fresh = model.codec.grow_from(state, source)
+    except (InputError, RuntimeError):
+        return False
+    print(f"stage2: grew the --codec-init codec (levels {source.codec_latent_channels}, finest stride "
+          f"{source.codec_finest_stride}) into {model.config.codec_latent_channels} at stride "
+          f"{model.config.codec_finest_stride}; {len(fresh)} tensors start fresh")
+    return True
 
 
 def run_model_config(config: Stage2Config) -> ModelConfig:
-    """The network sizes: from ``config.out`` when resuming, else from the stage-1 run ``config.init``."""
+    """The network sizes: from ``config.out`` when resuming, else from the stage-1 run ``config.init`` with
+    the codec layout options (``--codec-latent-channels``, ``--codec-finest-stride``) applied."""
     for run in (config.out, config.init):
         file = pathlib.Path(run) / "config.json"
         if run and file.is_file():
-            return ModelConfig.from_dict(json.loads(file.read_text())["model"])
+            model_config = ModelConfig.from_dict(json.loads(file.read_text())["model"])
+            return model_config if run == config.out else codec_layout(model_config, config)
     raise InputError(f"--init must name a stage-1 run folder (with config.json), got {config.init!r}")
+
+
+def codec_layout(model_config: ModelConfig, config: Stage2Config) -> ModelConfig:
+    """``model_config`` with the latent levels and finest stride of ``config`` where given."""
+    changes = {}
+    if config.codec_latent_channels:
+        try:
+            changes["codec_latent_channels"] = tuple(int(c) for c in config.codec_latent_channels.split(","))
+        except ValueError:
+            raise InputError(f"--codec-latent-channels must be a comma-separated list of ints, got "
+                             f"{config.codec_latent_channels!r}") from None
+    if config.codec_finest_stride:
+        changes["codec_finest_stride"] = config.codec_finest_stride
+    return dataclasses.replace(model_config, **changes)
 
 
 STAGE2 = stage1.Stage("stage2", build_stage2_model, stage2_loss, LOGGED)

@@ -2,13 +2,14 @@
 
 Structure (QARV / lossy-vae style, all views of a scene as one batch, each view coded independently):
 
-* **Analysis** (bottom-up): F_c [V,C_F,h,w] (zero-padded to multiples of ``2**(L+1)``) -> features at
-  strides 4, 8, ..., ``2**(L+1)`` of the feature grid (image strides 8, 16, ...), one per latent level.
+* **Analysis** (bottom-up): F_c [V,C_F,h,w] (zero-padded to multiples of the coarsest stride) -> one
+  feature per latent level, at strides ``f, 2f, ..., f * 2**(L-1)`` of the feature grid, ``f`` =
+  ``ModelConfig.codec_finest_stride`` (4: image strides 8, 16, 32 with L = 3; 2: image strides 4 to 32 with L = 4).
 * **Top-down** (the entropy model and the first half of the synthesis): from a learned constant at the
   coarsest stride, each :class:`LatentBlock` predicts the prior (mean, log-scale) of its latent from what
   the decoder already has, the posterior mean ``z`` from that and the bottom-up feature, quantises ``z``
   (see below) and merges the result back; a x2 sub-pixel upsampling leads to the next finer level.
-* **Synthesis**: two x2 upsamplings from the finest latent stride back to the feature grid -> F^_c.
+* **Synthesis**: ``log2(f)`` x2 upsamplings from the finest latent stride back to the feature grid -> F^_c.
 * **Rate control**: lambda in [:data:`LAMBDA_MIN`, :data:`LAMBDA_MAX`] is embedded (sinusoids of the
   normalised log lambda -> MLP) and every residual block applies a FiLM scale/shift of that embedding.
   Each latent level is also quantised on a lambda-dependent per-channel grid (gain units, as in Cui et al.
@@ -89,17 +90,22 @@ def num_levels(config: ModelConfig) -> int:
     return len(config.codec_latent_channels)
 
 
+def level_stride(config: ModelConfig, level: int) -> int:
+    """Stride on the feature grid of latent level ``level`` (0 = coarsest): ``finest * 2**(L-1-level)``."""
+    return config.codec_finest_stride * 2 ** (num_levels(config) - 1 - level)
+
+
 def padding_multiple(config: ModelConfig) -> int:
-    """The feature grid is zero-padded to multiples of this (the coarsest latent stride, ``2**(L+1)``)."""
-    return 2 ** (num_levels(config) + 1)
+    """The feature grid is zero-padded to multiples of this (the coarsest latent stride)."""
+    return level_stride(config, 0)
 
 
 def latent_shapes(config: ModelConfig, height: int, width: int) -> list[tuple[int, int, int]]:
     """(channels, rows, columns) of every latent level, coarsest first, for a feature grid of height x width."""
     m = padding_multiple(config)
     rows, cols = -(-height // m) * m, -(-width // m) * m
-    L = num_levels(config)
-    return [(c, rows // 2 ** (L + 1 - l), cols // 2 ** (L + 1 - l)) for l, c in enumerate(config.codec_latent_channels)]
+    strides = [level_stride(config, l) for l in range(num_levels(config))]
+    return [(c, rows // s, cols // s) for c, s in zip(config.codec_latent_channels, strides)]
 
 
 LAMBDA_FREQUENCIES = 4
@@ -153,23 +159,26 @@ class Upsample2x(nn.Module):
 
 
 class Analysis(nn.Module):
-    """Bottom-up: padded F_c [V,C_F,h,w] -> features [V,c,h/s,w/s] for s = 2**(L+1), ..., 8, 4 (coarsest first)."""
+    """Bottom-up: padded F_c [V,C_F,h,w] -> features [V,c,h/s,w/s] at every latent level's stride s (coarsest
+    first): a stride-2 stem, then stride-2 stages up to the coarsest stride; the levels take the last L outputs."""
 
     def __init__(self, config: ModelConfig):
         super().__init__()
         c, e = config.codec_channels, config.lambda_channels
+        self.levels = num_levels(config)
+        stages = int(math.log2(padding_multiple(config))) - 1
         self.stem = nn.Conv2d(config.feature_channels, c, 3, stride=2, padding=1)
         self.stem_block = FiLMBlock(c, e)
-        self.downs = nn.ModuleList(conv3x3(c, c, stride=2) for _ in range(num_levels(config)))
-        self.blocks = nn.ModuleList(FiLMBlock(c, e) for _ in range(num_levels(config)))
+        self.downs = nn.ModuleList(conv3x3(c, c, stride=2) for _ in range(stages))
+        self.blocks = nn.ModuleList(FiLMBlock(c, e) for _ in range(stages))
 
     def forward(self, feature: torch.Tensor, emb: torch.Tensor) -> list[torch.Tensor]:
         x = self.stem_block(self.stem(feature), emb)
-        features = []
+        features = [x]
         for down, block in zip(self.downs, self.blocks):
             x = block(down(x), emb)
             features.append(x)
-        return features[::-1]
+        return features[::-1][:self.levels]
 
 
 Quantizer = Callable[[int, "torch.Tensor | None", torch.Tensor, torch.Tensor], torch.Tensor]
@@ -215,7 +224,7 @@ def _bounded_log_scale(log_scale: torch.Tensor) -> torch.Tensor:
 
 class TopDown(nn.Module):
     """Top-down pass: learned constant at the coarsest stride -> latent blocks (x2 upsampling between)
-    -> top-down feature [V,c,h/4,w/4] at the finest latent stride."""
+    -> top-down feature [V,c,h/f,w/f] at the finest latent stride f."""
 
     def __init__(self, config: ModelConfig):
         super().__init__()
@@ -235,13 +244,15 @@ class TopDown(nn.Module):
 
 
 class Synthesis(nn.Module):
-    """Top-down feature [V,c,h/4,w/4] -> F^_c [V,C_F,h,w] (padded grid): two x2 upsamplings."""
+    """Top-down feature [V,c,h/f,w/f] -> F^_c [V,C_F,h,w] (padded grid): log2(f) x2 upsamplings, each after a
+    residual block (f: the finest latent stride)."""
 
     def __init__(self, config: ModelConfig):
         super().__init__()
         c, e = config.codec_channels, config.lambda_channels
-        self.blocks = nn.ModuleList(FiLMBlock(c, e) for _ in range(2))
-        self.ups = nn.ModuleList(Upsample2x(c) for _ in range(2))
+        stages = int(math.log2(config.codec_finest_stride))
+        self.blocks = nn.ModuleList(FiLMBlock(c, e) for _ in range(stages))
+        self.ups = nn.ModuleList(Upsample2x(c) for _ in range(stages))
         self.out = conv3x3(c, config.feature_channels)
 
     def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
@@ -380,6 +391,50 @@ class LatentCodec(nn.Module):
         for block in self.top_down.blocks:
             block.posterior[-1].weight.mul_(gain)
             block.posterior[-1].bias.mul_(gain)
+
+    @torch.no_grad()
+    def grow_from(self, state: dict[str, torch.Tensor], source: ModelConfig) -> list[str]:
+        """Load the codec ``state`` (a state dict of ``LatentCodec(source)``) into this codec, which has the
+        same levels plus finer ones (a smaller ``codec_finest_stride``); returns the names of the tensors
+        that keep their initialisation.
+
+        The shared analysis, levels, embedding and output convolution copy over. Of the source synthesis's
+        upsampling stages, the finest ones stay in the synthesis, the others become the top-down upsamplings
+        into the new levels (the residual blocks before them are dropped). Each new level starts as an
+        identity (its merge and its residual block's last convolution are zero), so the grown codec first
+        reconstructs nearly what the source did, and training then learns what the new latents add.
+
+        Raises:
+            InputError: the configs differ in anything but the finer levels.
+        """
+        extra = num_levels(self.config) - num_levels(source)
+        same = ("feature_channels", "codec_channels", "lambda_channels")
+        if (extra < 1 or any(getattr(source, n) != getattr(self.config, n) for n in same)
+                or self.config.codec_latent_channels[:num_levels(source)] != source.codec_latent_channels
+                or self.config.codec_finest_stride * 2 ** extra != source.codec_finest_stride):
+            raise InputError(f"cannot grow a codec with levels {source.codec_latent_channels} at finest stride "
+                             f"{source.codec_finest_stride} into one with {self.config.codec_latent_channels} at "
+                             f"{self.config.codec_finest_stride}: it needs the same levels plus finer ones")
+        mapped = {}
+        for name, tensor in state.items():
+            part, _, rest = name.partition(".")
+            if part == "synthesis" and rest.split(".")[0] in ("blocks", "ups"):
+                kind, index, tail = rest.split(".", 2)
+                stage = int(index) - extra
+                if stage >= 0:
+                    mapped[f"synthesis.{kind}.{stage}.{tail}"] = tensor
+                elif kind == "ups":
+                    mapped[f"top_down.ups.{num_levels(source) - 1 + int(index)}.{tail}"] = tensor
+            else:
+                mapped[name] = tensor
+        for block in self.top_down.blocks[num_levels(source):]:
+            for conv in (block.merge, block.post.conv2):
+                nn.init.zeros_(conv.weight)
+                nn.init.zeros_(conv.bias)
+        missing, unexpected = self.load_state_dict(mapped, strict=False)
+        if unexpected:
+            raise InputError(f"codec state holds tensors this codec lacks: {', '.join(unexpected)}")
+        return missing
 
     def forward(self, feature: torch.Tensor, lam: float) -> CodecOutput:
         """Differentiable pass: F_c [V,C_F,h,w] -> :class:`CodecOutput`. In training mode the quantisation

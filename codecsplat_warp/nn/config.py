@@ -25,6 +25,10 @@ FEATURE_STRIDE = 2
 """The Gaussian-generation feature F_g lives on the 1/2-resolution grid (see :mod:`codecsplat_warp.model.feathead`)."""
 
 
+LATER_FIELDS = {"codec_finest_stride": 4}
+"""ModelConfig fields that earlier model files lack, with the value those files imply."""
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """Hyper-parameters of :class:`~codecsplat_warp.model.codecsplat.CodecSplat`.
@@ -51,7 +55,9 @@ class ModelConfig:
         codec_channels: width of the latent codec (analysis, top-down and synthesis), see
             :mod:`codecsplat_warp.codec.latent`.
         codec_latent_channels: channels of each latent level, coarsest first; level l of L sits at stride
-            ``2**(L+1-l)`` of the feature grid (the finest at stride 4, i.e. 1/8 of the image).
+            ``codec_finest_stride * 2**(L-1-l)`` of the feature grid.
+        codec_finest_stride: stride of the finest latent level on the feature grid, a power of two >= 2
+            (4: 1/8 of the image, the layout of every model file before session 10; 2: 1/4 of the image).
         lambda_channels: size of the rate embedding e_lambda.
         mono: pretrained monocular backbone in MVEnc's mono slot: ``"none"`` or a name of
             :data:`codecsplat_warp.nn.mono.MONO_BACKBONES` (``"vgg16"``: frozen ImageNet VGG16 to relu3_3).
@@ -77,6 +83,7 @@ class ModelConfig:
     max_offset_px: float = 0.5
     codec_channels: int = 48
     codec_latent_channels: tuple[int, ...] = (16, 24, 32)
+    codec_finest_stride: int = 4
     lambda_channels: int = 64
     mono: str = "none"
 
@@ -110,14 +117,23 @@ class ModelConfig:
         if not 0 < self.scale_min_px < self.scale_max_px:
             raise InputError(f"ModelConfig needs 0 < scale_min_px < scale_max_px, got "
                              f"{self.scale_min_px}, {self.scale_max_px}")
+        stride = self.codec_finest_stride
+        if not isinstance(stride, int) or stride < 2 or stride & (stride - 1):
+            raise InputError(f"ModelConfig.codec_finest_stride must be a power of two >= 2, got {stride!r}")
         if self.mono != "none" and self.mono not in MONO_BACKBONES:
             raise InputError(f"ModelConfig.mono must be none or one of {', '.join(MONO_BACKBONES)}, got {self.mono!r}")
         if self.num_views < 2:
             raise InputError(f"ModelConfig.num_views must be >= 2 (matching needs a second view), got {self.num_views}")
 
     def to_dict(self) -> dict:
-        """Plain dict (JSON-serialisable), the inverse of :meth:`from_dict`."""
-        return asdict(self)
+        """Plain dict (JSON-serialisable), the inverse of :meth:`from_dict`. Fields added after model files
+        were shipped (:data:`LATER_FIELDS`) are left out at the value those files imply, so that their
+        config, and with it their weights digest and model id, stay what they were."""
+        values = asdict(self)
+        for name, implied in LATER_FIELDS.items():
+            if values[name] == implied:
+                del values[name]
+        return values
 
     @classmethod
     def from_dict(cls, values: dict) -> "ModelConfig":
