@@ -65,7 +65,16 @@ def test_a_grown_codec_starts_where_its_source_was():
     feature = _feature(1)
     for lam in (16.0, 1024.0):
         torch.testing.assert_close(grown(feature, lam).feature, source(feature, lam).feature)
-    assert grown.compress(feature, 1024.0).symbols[0].equal(source.compress(feature, 1024.0).symbols[0])
+        coded, before = grown.compress(feature, lam), source.compress(feature, lam)
+        assert all(a.equal(b) for a, b in zip(coded.symbols, before.symbols))
+        assert not coded.symbols[-1].any()  # the new level starts unused ...
+        assert float(coded.bits.sum() - before.bits.sum()) < 0.01 * coded.symbols[-1].numel()  # ... and nearly free
+        assert abs(sum(map(len, coded.streams)) - sum(map(len, before.streams))) <= 2 * len(coded.streams)
+    grown.train()
+    loss = grown(feature, 256.0).feature.square().mean()
+    loss.backward()
+    new_level = grown.top_down.blocks[2]
+    assert new_level.posterior[-1].weight.grad.abs().sum() > 0  # the decoder's gradient reaches the new level
 
 
 def test_growing_refuses_layouts_that_are_not_the_source_plus_finer_levels():

@@ -216,6 +216,31 @@ class LatentBlock(nn.Module):
         return self.post(x, emb)
 
 
+UNUSED_POSTERIOR_GAIN = 1e-3
+"""Factor on a new level's random posterior (:func:`_start_unused`): its latents stay far below half a
+quantisation step at every lambda (the gain is at most 8), so they round to zero."""
+
+
+@torch.no_grad()
+def _start_unused(block: "LatentBlock") -> None:
+    """Make a fresh latent level start unused, in place: its prior is mean 0 at the smallest scale (whatever
+    the lambda gain), its posterior is random but tiny (zero symbols, at ~1e-5 bits each), and it adds nothing
+    to the top-down feature (the merge reads only the latent, the residual block starts as the identity).
+    The merge's latent weights and the posterior stay random, so gradients reach the level from the first step."""
+    prior = block.prior[-1]
+    latent = prior.out_channels // 2
+    nn.init.zeros_(prior.weight)
+    nn.init.zeros_(prior.bias)
+    prior.bias[latent:] = entropy.log_scale_bounds()[0] - base_log_gain(LAMBDA_MAX)
+    block.posterior[-1].weight.mul_(UNUSED_POSTERIOR_GAIN)
+    block.posterior[-1].bias.mul_(UNUSED_POSTERIOR_GAIN)
+    channels = block.merge.out_channels
+    block.merge.weight[:, :channels] = 0.0
+    nn.init.zeros_(block.merge.bias)
+    nn.init.zeros_(block.post.conv2.weight)
+    nn.init.zeros_(block.post.conv2.bias)
+
+
 def _bounded_log_scale(log_scale: torch.Tensor) -> torch.Tensor:
     """Clamp to the scale table's range with a straight-through gradient (never stuck at a bound)."""
     lo, hi = entropy.log_scale_bounds()
@@ -400,9 +425,11 @@ class LatentCodec(nn.Module):
 
         The shared analysis, levels, embedding and output convolution copy over. Of the source synthesis's
         upsampling stages, the finest ones stay in the synthesis, the others become the top-down upsamplings
-        into the new levels (the residual blocks before them are dropped). Each new level starts as an
-        identity (its merge and its residual block's last convolution are zero), so the grown codec first
-        reconstructs nearly what the source did, and training then learns what the new latents add.
+        into the new levels (the residual blocks before them are dropped). Each new level starts unused
+        (:func:`_start_unused`): all its symbols are zero and nearly free, and it passes the top-down feature
+        on unchanged, so the grown codec first codes and reconstructs nearly what the source did, and
+        training then learns what the new latents add. (Zero symbols at a random prior instead cost kilobytes,
+        and their rate gradient through the shared top-down path wrecked a trained codec in session 10.)
 
         Raises:
             InputError: the configs differ in anything but the finer levels.
@@ -428,9 +455,7 @@ class LatentCodec(nn.Module):
             else:
                 mapped[name] = tensor
         for block in self.top_down.blocks[num_levels(source):]:
-            for conv in (block.merge, block.post.conv2):
-                nn.init.zeros_(conv.weight)
-                nn.init.zeros_(conv.bias)
+            _start_unused(block)
         missing, unexpected = self.load_state_dict(mapped, strict=False)
         if unexpected:
             raise InputError(f"codec state holds tensors this codec lacks: {', '.join(unexpected)}")
