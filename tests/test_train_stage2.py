@@ -84,12 +84,26 @@ def test_codec_layout_options_grow_the_codec_init_codec_into_finer_levels(tmp_pa
         assert torch.equal(grown[f"codec.top_down.blocks.1.{name}"], value), name
     assert torch.equal(grown["codec.top_down.ups.1.conv.weight"], donor.codec.synthesis.ups[0].conv.weight)
     assert torch.equal(grown["codec.synthesis.ups.0.conv.weight"], donor.codec.synthesis.ups[1].conv.weight)
-    assert not grown["codec.top_down.blocks.2.merge.weight"].any()
+    assert not grown["codec.top_down.blocks.2.merge.weight"][:, :model_config.codec_channels].any()  # starts unused
     with pytest.raises(DataError, match="holds no codec"):  # levels that are not the donor's plus finer ones
         wrong = Stage2Config(**{**config.__dict__, "codec_latent_channels": "4,7,3", "out": str(tmp_path / "s3")})
         build_stage2_model(run_model_config(wrong), wrong)
     with pytest.raises(InputError, match="comma-separated"):
         run_model_config(Stage2Config(init=str(tmp_path / "s1"), out=str(tmp_path / "s4"), codec_latent_channels="4;8"))
+
+
+def test_trainable_narrows_training_to_the_named_stage2_parameters(tmp_path):
+    _stage1_run(tmp_path / "s1")
+    config = Stage2Config(init=str(tmp_path / "s1"), out=str(tmp_path / "s2"),
+                          trainable="codec.top_down.blocks.1,codec.synthesis,depth_head")
+    model = build_stage2_model(TINY, config)
+    trainable = {n for n, p in model.named_parameters() if p.requires_grad}
+    assert trainable and all(n.startswith(("codec.top_down.blocks.1.", "codec.synthesis.", "depth_head."))
+                             for n in trainable)
+    assert any(n.startswith("depth_head.") for n in trainable)
+    for wrong in ("codec.top_down.blocks.9", "backbone", "codec.top_down.blocks.1.pri"):
+        with pytest.raises(InputError, match="names no stage-2 parameter"):
+            build_stage2_model(TINY, Stage2Config(init=str(tmp_path / "s1"), out=str(tmp_path / "s3"), trainable=wrong))
 
 
 def test_lambda_is_log_uniform_and_reproducible_per_step_and_rank():

@@ -7,8 +7,8 @@ MODEL_FILE_OR_RUN`` instead warm-starts all three stage-2 modules (latent codec,
 from another model's (the shipped default, say: continuing its stage 2 on a backbone that stage 1 trained
 further). ``--codec-latent-channels 16,24,32,16 --codec-finest-stride 2`` gives the new run's codec other
 latent levels than the init run's; a ``--codec-init`` codec with the same levels minus the finer ones is then
-grown into it (:meth:`LatentCodec.grow_from`). Only the codec, the depth head and R_post train; everything
-else is frozen. Per step, lambda is drawn log-uniformly from [16, 1024] and the loss is
+grown into it (:meth:`LatentCodec.grow_from`). Only the codec, the depth head and R_post train (``--trainable
+PREFIX,...`` narrows that to the parameters named so, e.g. a grown codec's new levels); everything else is frozen. Per step, lambda is drawn log-uniformly from [16, 1024] and the loss is
 
     (lambda / 1024) * [D_render + gamma * |S - S_enc|_1 + alpha(step) * |F^_c - F_c|^2 / |F_c|^2] + beta * R
 
@@ -85,6 +85,7 @@ class Stage2Config(stage1.TrainConfig):
     feature_decay_steps: int = 1
     codec_latent_channels: str = ""
     codec_finest_stride: int = 0
+    trainable: str = ""
 
 
 def rate_weight(config: Stage2Config, model_config: ModelConfig) -> float:
@@ -172,7 +173,22 @@ def build_stage2_model(model_config: ModelConfig, config: Stage2Config) -> Codec
     model.requires_grad_(False)
     for module in model.codec_modules():
         module.requires_grad_(True)
+    if config.trainable:
+        train_only(model, config.trainable.split(","))
     return model
+
+
+def train_only(model: CodecSplat, prefixes: list[str]) -> None:
+    """Freeze every stage-2 parameter whose name starts with none of ``prefixes`` (``codec.top_down.blocks.3``,
+    ``depth_head``, ...). Raises InputError for a prefix that names no stage-2 parameter."""
+    names = [n for n, p in model.named_parameters() if p.requires_grad]
+    for prefix in prefixes:
+        if not any(n == prefix or n.startswith(prefix + ".") for n in names):
+            raise InputError(f"--trainable {prefix!r} names no stage-2 parameter (they start with "
+                             f"{', '.join(model.CODEC_MODULE_NAMES)})")
+    for name, parameter in model.named_parameters():
+        if not any(name == p or name.startswith(p + ".") for p in prefixes):
+            parameter.requires_grad_(False)
 
 
 def load_stage1_weights(model: CodecSplat, run) -> None:
