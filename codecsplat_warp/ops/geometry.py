@@ -13,12 +13,12 @@ from dataclasses import dataclass
 import torch
 
 from ..cameras import Cameras
-from ..device import (
-    check_same_dtype, check_tensor, check_values, common_device, launch, row_chunks, run_concurrently, warp_scope,
-)
+from ..checks import check_same_dtype, check_tensor, check_values, common_device
+from ..device import launch, warp_scope
 from ..errors import DeviceMismatchError, InputError
 from ..kernels import reproject as reproject_kernels
 from ..kernels import unproject as unproject_kernels
+from .primitives import row_chunks, run_concurrently
 
 _LOW_PRECISION = (torch.float16, torch.bfloat16)
 _ACCEPTED = (torch.float32, torch.float64, torch.float16, torch.bfloat16)

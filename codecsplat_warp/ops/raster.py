@@ -13,7 +13,7 @@ Function (or, when nothing needs a gradient, called without one) so that a call 
    buffers of step 4 are cut to the budget).
 4. One key ``[camera | tile | depth]`` per intersection, 32 bits when the call's depth range allows, else 64 (the
    layout is computed on the device, see :mod:`codecsplat_warp.kernels.raster_tiles`); Warp's radix sort
-   (:func:`~codecsplat_warp.device.radix_sort_pairs`) on the used bits only, per-tile ranges from the sorted keys.
+   (:func:`~codecsplat_warp.ops.primitives.radix_sort_pairs`) on the used bits only, per-tile ranges from the sorted keys.
    On CUDA, a call with the shape of an earlier one emits, sorts and composites *before* the host read, into
    buffers of a capacity guessed from that call (:class:`_Speculation`), so that neither the GPU nor the host waits
    for the other around the read; when the read shows the guess too small (or the key too wide), the keys are
@@ -39,12 +39,11 @@ from typing import NamedTuple
 import torch
 import warp as wp
 
-from ..device import (
-    FLOAT_DTYPES, check_finite, check_tensor, common_device, inclusive_scan, launch, matrices, radix_sort_pairs,
-    stage_host_values, validation_enabled, vectors, warp_dtype, warp_scope,
-)  # fmt: skip
+from ..checks import FLOAT_DTYPES, check_finite, check_tensor, common_device, validation_enabled
+from ..device import launch, matrices, stage_host_values, vectors, warp_dtype, warp_scope
 from ..errors import InputError, RasterMemoryError
 from ..kernels import raster_composite, raster_project, raster_tiles
+from .primitives import inclusive_scan, radix_sort_pairs
 
 _LOW_PRECISION = (torch.float16, torch.bfloat16)
 
