@@ -13,7 +13,8 @@ Function (or, when nothing needs a gradient, called without one) so that a call 
    buffers of step 4 are cut to the budget).
 4. One key ``[camera | tile | depth]`` per intersection, 32 bits when the call's depth range allows, else 64 (the
    layout is computed on the device, see :mod:`codecsplat_warp.kernels.raster_tiles`); Warp's radix sort
-   (:func:`~codecsplat_warp.ops.primitives.radix_sort_pairs`) on the used bits only, per-tile ranges from the sorted keys.
+   (:func:`~codecsplat_warp.ops.primitives.radix_sort_pairs`) on the used bits only, per-tile ranges from the
+   sorted keys.
    On CUDA, a call with the shape of an earlier one emits, sorts and composites *before* the host read, into
    buffers of a capacity guessed from that call (:class:`_Speculation`), so that neither the GPU nor the host waits
    for the other around the read; when the read shows the guess too small (or the key too wide), the keys are
@@ -42,7 +43,7 @@ import warp as wp
 from ..checks import FLOAT_DTYPES, check_finite, check_tensor, common_device, validation_enabled
 from ..device import launch, matrices, stage_host_values, vectors, warp_dtype, warp_scope
 from ..errors import InputError, RasterMemoryError
-from ..kernels import raster_composite, raster_project, raster_tiles
+from ..kernels import raster_composite, raster_project, raster_row, raster_tiles
 from .primitives import inclusive_scan, radix_sort_pairs
 
 _LOW_PRECISION = (torch.float16, torch.bfloat16)
@@ -136,7 +137,7 @@ def _rows_and_cameras(means: torch.Tensor, num_cameras: int) -> tuple[torch.Tens
     """Uninitialised projected rows ``[B*N, 10]`` and prepared cameras (:class:`_Cameras`) in the dtype of ``means``
     ``[N,3]`` (separate allocations: fewer host operations than views of one buffer)."""
     B = num_cameras
-    rows = means.new_empty(B * means.shape[0], raster_project.ROW_WIDTH)
+    rows = means.new_empty(B * means.shape[0], raster_row.ROW_WIDTH)
     return rows, _Cameras(means.new_empty(B, 4, 4), means.new_empty(B, 3, 3), means.new_empty(3))
 
 
@@ -284,12 +285,12 @@ class _ProjectGaussians(torch.autograd.Function):
         ctx.visible = visible
         ctx.save_for_backward(means, quats, scales, opacities, coeffs)
         ctx.mark_non_differentiable(radii, flags)
-        return splats.view(B, N, raster_project.ROW_WIDTH), radii.view(B, N, 2), flags
+        return splats.view(B, N, raster_row.ROW_WIDTH), radii.view(B, N, 2), flags
 
     @staticmethod
     def backward(ctx, grad_splats, _grad_radii, _grad_flags):
         means, quats, scales, opacities, coeffs = ctx.saved_tensors
-        grad_rows = grad_splats.reshape(-1, raster_project.ROW_WIDTH).contiguous()
+        grad_rows = grad_splats.reshape(-1, raster_row.ROW_WIDTH).contiguous()
         with warp_scope(means.device) as wdev:
             grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs, ctx.cameras, ctx.visible,
                                       ctx.settings, wdev)  # fmt: skip
@@ -576,9 +577,13 @@ def project_gaussians(
     if validation_enabled() and means.shape[0]:
         _raise_on_flags(flags.tolist())
     return ProjectedGaussians(
-        means2d=splats[..., 0:2], conics=splats[..., 2:5], opacities=splats[..., 5], colors=splats[..., 6:9],
-        depths=splats[..., 9], radii=radii,
-    )  # fmt: skip
+        means2d=splats[..., raster_row.MEAN_X : raster_row.MEAN_Y + 1],
+        conics=splats[..., raster_row.CONIC_A : raster_row.CONIC_C + 1],
+        opacities=splats[..., raster_row.OPACITY],
+        colors=splats[..., raster_row.RED : raster_row.BLUE + 1],
+        depths=splats[..., raster_row.DEPTH],
+        radii=radii,
+    )
 
 
 def _prepare(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, far, background, mode,
