@@ -21,7 +21,7 @@ from dataclasses import dataclass, fields, replace
 
 import torch
 
-from .device import FLOAT_DTYPES, check_same_dtype, check_tensor, common_device
+from .checks import FLOAT_DTYPES, check_same_dtype, check_tensor, common_device
 from .errors import CameraError
 
 ROTATION_TOLERANCE = 1e-4

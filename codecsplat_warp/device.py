@@ -1,10 +1,10 @@
-"""The one place where torch meets Warp: initialisation, devices, streams, dtypes and argument checks.
+"""The one place where torch meets Warp: initialisation, devices, streams, dtypes, launches and host reads.
 
-Rules every op in this package follows (and that this module implements):
+Rules every op in this package follows (and that this module implements; argument checks are in
+:mod:`codecsplat_warp.checks`, Warp's native sort and scan and concurrent CPU launches in
+:mod:`codecsplat_warp.ops.primitives`):
 
 * Warp is initialised once, lazily, on first use (:func:`init_warp`).
-* An op takes its device from its input tensors (:func:`common_device`); tensors on different
-  devices raise :class:`~codecsplat_warp.errors.DeviceMismatchError` naming the arguments.
 * Every Warp launch runs on torch's *current* CUDA stream of that device (:func:`warp_scope`), so Warp
   work is ordered with the surrounding torch work without host synchronisation.
 * Tensors cross to Warp zero-copy (:func:`to_warp`): ``wp.from_torch(t.detach(), requires_grad=False)``;
@@ -13,10 +13,8 @@ Rules every op in this package follows (and that this module implements):
 * Kernels are launched through :func:`launch`, which checks and records a launch once per combination of
   argument types (or per ``layout`` the op names) and thread, and then replays it with tensors as raw array
   descriptors, calling CPU kernels directly on a persistent argument struct (low host overhead).
-* Non-contiguous inputs are made contiguous deliberately (a copy only when needed) by
-  :func:`check_tensor`; wrong shapes or dtypes raise :class:`~codecsplat_warp.errors.InputError`.
-* Finite-value checks (one device-to-host sync each) run unless ``CODECSPLAT_VALIDATE=0`` is set or
-  :func:`set_validation` turned them off, e.g. in a training loop whose inputs are known to be good.
+* Small int64 results go to the host through a pinned buffer and an event (:func:`stage_host_values`), so that
+  the host waits for that copy only, not for the whole stream.
 """
 
 from __future__ import annotations
@@ -32,10 +30,8 @@ import warp as wp
 from warp._src import context as warp_context  # Launch internals the replay relies on (see _Command)
 from warp._src.types import array_t  # the descriptor type wp.from_torch(return_ctype=True) returns
 
-from .errors import DeviceMismatchError, InputError
-
-FLOAT_DTYPES: tuple[torch.dtype, ...] = (torch.float32, torch.float64)
-"""Floating dtypes the Warp kernels are instantiated for (float32 for speed, float64 for gradchecks)."""
+from .checks import check_finite, check_tensor, common_device  # noqa: F401  re-exported for model/codecsplat.py only
+from .errors import InputError
 
 _TORCH_TO_WARP_DTYPE = {
     torch.float32: wp.float32,
@@ -51,7 +47,6 @@ if os.environ.get("CODECSPLAT_WARP_VERBOSE", "0") == "0":  # Warp logs every mod
 
 _init_lock = threading.Lock()
 _initialised = False
-_validate = os.environ.get("CODECSPLAT_VALIDATE", "1") != "0"
 
 
 def init_warp() -> None:
@@ -63,17 +58,6 @@ def init_warp() -> None:
         if not _initialised:
             wp.init()
             _initialised = True
-
-
-def set_validation(enabled: bool) -> None:
-    """Turn the finite-value checks of every op on or off (default: on, or ``CODECSPLAT_VALIDATE``)."""
-    global _validate
-    _validate = bool(enabled)
-
-
-def validation_enabled() -> bool:
-    """Whether ops check their inputs for NaN/Inf (each check costs one device sync)."""
-    return _validate
 
 
 def warp_dtype(dtype: torch.dtype):
@@ -511,83 +495,6 @@ def _tensor(arg) -> torch.Tensor:
     return arg.tensor if isinstance(arg, Grouped) else arg
 
 
-def radix_sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_bit: int) -> None:
-    """Sort ``keys[:count]`` (uint32 or int64) and ``values[:count]`` (int32) in place by key bits ``[0, end_bit)``.
-
-    ``wp.utils.radix_sort_pairs`` on the tensors' memory, without wrapping them as ``wp.array`` (the native call
-    that function makes); both tensors are contiguous with at least ``2 * count`` elements, the second half being
-    scratch. On CUDA it runs on Warp's current stream: call it inside :func:`warp_scope`.
-
-    Raises:
-        InputError: wrong dtype, too short or not contiguous.
-    """
-    if count == 0 or end_bit == 0:
-        return
-    for name, tensor, dtypes in (("keys", keys, _SORT_KEYS), ("values", values, (torch.int32,))):
-        if tensor.dtype not in dtypes or tensor.numel() < 2 * count or not tensor.is_contiguous():
-            raise InputError(f"radix sort {name} must be contiguous {' or '.join(map(str, dtypes))} with at least "
-                             f"{2 * count} elements")  # fmt: skip
-    sort = getattr(warp_context.runtime.core, _SORT_KEYS[keys.dtype] + ("_device" if keys.is_cuda else "_host"))
-    sort(keys.data_ptr(), values.data_ptr(), count, 0, end_bit, 4)
-
-
-def inclusive_scan(values: torch.Tensor, out: torch.Tensor) -> None:
-    """``torch.cumsum(values, 0, out=out)`` for contiguous 1-D int64 tensors of equal length, by Warp's native scan on
-    the tensors' memory (CUB on CUDA, on Warp's current stream: call it inside :func:`warp_scope`). One native call
-    on the host, against 25 us for ``torch.cumsum`` on a lent H100's host.
-
-    Raises:
-        InputError: wrong dtype, shape or length, or not contiguous.
-    """
-    for name, tensor in (("values", values), ("out", out)):
-        if tensor.dtype != torch.int64 or tensor.dim() != 1 or not tensor.is_contiguous():
-            raise InputError(f"inclusive scan {name} must be a contiguous 1-D int64 tensor")
-    if values.numel() != out.numel():
-        raise InputError(f"inclusive scan of {values.numel()} values into {out.numel()}")
-    if values.numel() == 0:
-        return
-    core = warp_context.runtime.core
-    scan = core.wp_array_scan_int64_device if values.is_cuda else core.wp_array_scan_int64_host
-    succeeded = scan(values.data_ptr(), out.data_ptr(), values.numel(), 8, 8, 1, True)
-    if values.is_cuda and not succeeded:  # the host scan returns nothing
-        raise RuntimeError(f"Warp's scan failed: {warp_context.runtime.get_error_string()}")
-
-
-_SORT_KEYS = {torch.uint32: "wp_radix_sort_pairs_uint", torch.int64: "wp_radix_sort_pairs_int64"}
-"""Key dtypes :func:`radix_sort_pairs` takes, and the stem of Warp's native sort for each."""
-
-
-def row_chunks(rows: int, device: torch.device) -> list[tuple[int, int]]:
-    """(first row, row count) pieces of a launch over ``rows`` image rows, one per CPU worker thread.
-
-    Warp runs a CPU launch on a single thread; ops split their launches by rows and run the pieces with
-    :func:`run_concurrently` (a Warp CPU launch releases the GIL), using ``torch.get_num_threads()``
-    threads like torch's own CPU ops. On CUDA there is one piece.
-    """
-    pieces = 1 if device.type == "cuda" else max(1, min(torch.get_num_threads(), rows))
-    bounds = [rows * i // pieces for i in range(pieces + 1)]
-    return [(lo, hi - lo) for lo, hi in zip(bounds, bounds[1:]) if hi > lo]
-
-
-_cpu_pool = None
-
-
-def run_concurrently(tasks: Sequence) -> None:
-    """Call every task (no arguments); more than one run on a shared thread pool. Re-raises the first error."""
-    global _cpu_pool
-    if len(tasks) <= 1:
-        for task in tasks:
-            task()
-        return
-    if _cpu_pool is None:
-        from concurrent.futures import ThreadPoolExecutor
-
-        _cpu_pool = ThreadPoolExecutor(max_workers=os.cpu_count() or 1, thread_name_prefix="codecsplat-cpu")
-    futures = [_cpu_pool.submit(task) for task in tasks[1:]]
-    tasks[0]()
-    for future in futures:
-        future.result()
-
 
 def _type_key(arg) -> object:
     if isinstance(arg, torch.Tensor):
@@ -661,120 +568,3 @@ def _launch_checked(kernel, dims, inputs, adj_inputs, adjoint: bool, block_dim: 
     launcher = wp.launch if block_dim is None else functools.partial(wp.launch_tiled, block_dim=block_dim)
     return launcher(kernel, dim=dims, inputs=inputs, adj_inputs=adj_inputs, adjoint=adjoint, device=device,
                     record_cmd=record_cmd)  # fmt: skip
-
-
-def common_device(**tensors: torch.Tensor | None) -> torch.device:
-    """The device shared by all given tensors (None entries are skipped).
-
-    Raises:
-        DeviceMismatchError: naming each argument and its device when they differ.
-        InputError: when no tensor is given.
-    """
-    first = None
-    for tensor in tensors.values():
-        if tensor is not None:
-            if first is None:
-                first = tensor.device
-            elif tensor.device != first:
-                listing = ", ".join(f"{n} on {t.device}" for n, t in tensors.items() if t is not None)
-                raise DeviceMismatchError(f"arguments are on different devices: {listing}")
-    if first is None:
-        raise InputError("no tensor argument to take the device from")
-    return first
-
-
-def check_tensor(
-    name: str,
-    tensor: object,
-    shape: Sequence[int | str | None],
-    dtypes: Sequence[torch.dtype] = FLOAT_DTYPES,
-    dims: dict[str, int] | None = None,
-) -> torch.Tensor:
-    """Check one tensor argument and return it contiguous.
-
-    Args:
-        name: argument name used in error messages.
-        tensor: the value passed by the caller.
-        shape: expected shape; an int must match exactly, ``None`` matches anything, and a string is a
-            symbol (``"V"``, ``"C"``) that must take the same value in every tensor checked with the same
-            ``dims`` dictionary (filled in as symbols are first seen).
-        dtypes: allowed dtypes.
-        dims: shared symbol table for consistency checks between arguments.
-
-    Raises:
-        InputError: not a tensor, wrong rank, wrong size or wrong dtype (message names ``name``).
-    """
-    if not isinstance(tensor, torch.Tensor):
-        raise InputError(f"{name} must be a torch.Tensor, got {type(tensor).__name__}")
-    sizes = tensor.shape
-    if len(sizes) != len(shape):
-        raise InputError(f"{name} must have shape {_shape_text(shape)}, got {tuple(sizes)}")
-    if dims is None:
-        dims = {}
-    for axis, want in enumerate(shape):
-        if want.__class__ is str:
-            got = sizes[axis]
-            bound = dims.setdefault(want, got)
-            if bound != got:
-                raise InputError(
-                    f"{name} has {want}={got} on axis {axis} but another argument has {want}={bound}"
-                )
-        elif want is not None and want != sizes[axis]:
-            raise InputError(f"{name} must have shape {_shape_text(shape)}, got {tuple(sizes)}")
-    if tensor.dtype not in dtypes:
-        allowed = ", ".join(str(d).replace("torch.", "") for d in dtypes)
-        raise InputError(f"{name} must have dtype {allowed}, got {str(tensor.dtype).replace('torch.', '')}")
-    return tensor if tensor.is_contiguous() else tensor.contiguous()
-
-
-def check_same_dtype(**tensors: torch.Tensor | None) -> torch.dtype:
-    """The dtype shared by all given floating tensors; InputError naming them if they differ."""
-    present = {n: t for n, t in tensors.items() if t is not None}
-    dtypes = {n: t.dtype for n, t in present.items()}
-    first = next(iter(dtypes.values()))
-    if any(d != first for d in dtypes.values()):
-        listing = ", ".join(f"{n}: {str(d).replace('torch.', '')}" for n, d in dtypes.items())
-        raise InputError(f"arguments must share one float dtype, got {listing}")
-    return first
-
-
-def check_finite(name: str, tensor: torch.Tensor) -> None:
-    """InputError if ``tensor`` holds NaN or Inf (skipped when validation is off; one device sync)."""
-    if _validate and tensor.numel() and not bool(torch.isfinite(tensor).all()):
-        bad = int((~torch.isfinite(tensor)).sum())
-        raise InputError(f"{name} holds {bad} non-finite value(s) (NaN or Inf)")
-
-
-def check_positive(name: str, tensor: torch.Tensor) -> None:
-    """InputError if any value of ``tensor`` is <= 0 or non-finite (skipped when validation is off)."""
-    check_finite(name, tensor)
-    if _validate and tensor.numel() and not bool((tensor > 0).all()):
-        bad = int((tensor <= 0).sum())
-        raise InputError(f"{name} must be > 0 everywhere, {bad} value(s) are not")
-
-
-def check_values(
-    finite: dict[str, torch.Tensor] | None = None, positive: dict[str, torch.Tensor] | None = None
-) -> None:
-    """Finite (and, for ``positive``, > 0) checks of several tensors with ONE device-to-host sync.
-
-    Skipped when validation is off. Raises InputError through :func:`check_finite` / :func:`check_positive`
-    (which name the argument and count the bad values) for the first failing tensor.
-    """
-    if not _validate:
-        return
-    finite, positive = finite or {}, positive or {}
-    # Reductions to scalars, no per-element temporaries: NaN/Inf anywhere make the sum non-finite. A sum that
-    # overflows on finite values only sends us to the exact per-element checks below, which then pass.
-    flags = [torch.isfinite(t.sum()) for t in finite.values()]
-    flags += [torch.isfinite(t.sum()) & (t.min() > 0) for t in positive.values() if t.numel()]
-    if not flags or all(torch.stack(flags).tolist()):
-        return
-    for name, t in finite.items():
-        check_finite(name, t)
-    for name, t in positive.items():
-        check_positive(name, t)
-
-
-def _shape_text(shape: Sequence[int | str | None]) -> str:
-    return "[" + ",".join("*" if s is None else str(s) for s in shape) + "]"

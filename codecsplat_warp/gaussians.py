@@ -18,7 +18,7 @@ from dataclasses import dataclass, fields
 
 import torch
 
-from .device import check_tensor
+from .checks import check_tensor
 from .errors import InputError
 
 _ANY_FLOAT = (torch.float32, torch.float64, torch.float16, torch.bfloat16)

@@ -13,7 +13,7 @@ that is the identity on the CPU's one-lane blocks) before one lane adds it to th
 atomics per row and warp instead of up to 320.
 
 Constants are gsplat's: ``alpha = min(0.999, opacity * exp(-power))``; rows with ``power < 0`` or
-``alpha < 1/255`` are skipped; a pixel stops (exclusively) at the first row whose
+``alpha < 1/255`` (:data:`.raster_row.ALPHA_THRESHOLD`) are skipped; a pixel stops (exclusively) at the first row whose
 ``T * (1 - alpha) <= min_transmittance`` (a kernel argument; gsplat's constant is 1e-4). The forward
 saves the final transmittance ``T``, the accumulated depth and the sorted index of the last contributing
 row; the backward walks that pixel's rows back to front from that index, rebuilding ``T`` by division
@@ -24,8 +24,7 @@ not: behind a nearly opaque stack a float32 ``T`` underflows after about a dozen
 
 Expected depth is normalised in the kernels, ``sum w z / max(alpha, MIN_ALPHA_FOR_DEPTH)`` (gsplat's
 RGB+ED), with its gradient. An absent output is a zero-length array: no background (``[0, 3]``), no depth
-(``[0]``), no gradient for an output (``[0]`` or ``[0, 3]``). Row layout: see
-:mod:`codecsplat_warp.kernels.raster_project`.
+(``[0]``), no gradient for an output (``[0]`` or ``[0, 3]``). Row layout: see :mod:`.raster_row`.
 """
 
 from __future__ import annotations
@@ -36,14 +35,13 @@ from typing import Any
 import warp as wp
 
 from .lanes import WARP_SIZE, warp_any, warp_max, warp_sum
+from .raster_row import (
+    ALPHA_THRESHOLD, BLUE, CONIC_A, CONIC_B, CONIC_C, DEPTH, GREEN, MEAN_X, MEAN_Y, OPACITY, RED, ROW_WIDTH,
+)  # fmt: skip
 
 wp.set_module_options({"enable_backward": False})
 
-ROWS = wp.constant(10)
-"""Scalars per projected row (see raster_project.ROW_WIDTH)."""
-
 MAX_ALPHA = 0.999
-MIN_ALPHA = 1.0 / 255.0
 OUTSIDE_ROW = wp.constant(1 << 30)
 """Pixel row given to lanes that own no pixel (larger than any image height)."""
 MIN_ALPHA_FOR_DEPTH = 1.0e-10
@@ -72,9 +70,9 @@ def tile_pixel(block: int, lane: int, blocks_per_tile: int, tile_size: int, tile
 @wp.func
 def gaussian_power(rows: Any, t: int, px: Any, py: Any):
     """``0.5 (a dx^2 + c dy^2) + b dx dy`` of staged row ``t`` at pixel centre (px, py)."""
-    dx = rows[t, 0] - px
-    dy = rows[t, 1] - py
-    return type(px)(0.5) * (rows[t, 2] * dx * dx + rows[t, 4] * dy * dy) + rows[t, 3] * dx * dy
+    dx = rows[t, MEAN_X] - px
+    dy = rows[t, MEAN_Y] - py
+    return type(px)(0.5) * (rows[t, CONIC_A] * dx * dx + rows[t, CONIC_C] * dy * dy) + rows[t, CONIC_B] * dx * dy
 
 
 FORWARD_BLOCKS_PER_SM = 4
@@ -148,24 +146,25 @@ def composite_kernels(batch: int):
         done = not inside
         for batch_start in range(start, end, BATCH):
             ids = wp.tile_load(sorted_ids, shape=BATCH, offset=batch_start, storage="shared")
-            rows = wp.tile_load_indexed(splats, indices=ids, shape=(BATCH, ROWS), offset=(0, 0), axis=0, storage="shared")
+            rows = wp.tile_load_indexed(splats, indices=ids, shape=(BATCH, ROW_WIDTH), offset=(0, 0), axis=0,
+                                        storage="shared")
             count = wp.min(BATCH, end - batch_start)
             if not done:
                 for t in range(count):
                     power = gaussian_power(rows, t, cx, cy)
-                    alpha = wp.min(out_alpha.dtype(MAX_ALPHA), rows[t, 5] * wp.exp(-power))
-                    if power < zero or alpha < out_alpha.dtype(MIN_ALPHA):
+                    alpha = wp.min(out_alpha.dtype(MAX_ALPHA), rows[t, OPACITY] * wp.exp(-power))
+                    if power < zero or alpha < out_alpha.dtype(ALPHA_THRESHOLD):
                         continue
                     next_T = T * (one - alpha)
                     if next_T <= min_transmittance:
                         done = True
                         break
                     weight = alpha * T
-                    r += weight * rows[t, 6]
-                    g += weight * rows[t, 7]
-                    b += weight * rows[t, 8]
+                    r += weight * rows[t, RED]
+                    g += weight * rows[t, GREEN]
+                    b += weight * rows[t, BLUE]
                     if render_depth:
-                        depth += weight * rows[t, 9]
+                        depth += weight * rows[t, DEPTH]
                     last = batch_start + t
                     T = next_T
             finished = wp.tile_sum(wp.tile(wp.where(done, 1, 0)))
@@ -264,7 +263,7 @@ def composite_kernels(batch: int):
         # outside the image, contributes zero.
         block_last = wp.tile_max(wp.tile(last))[0]
         warp_last = warp_max(last)
-        columns = wp.where(grad_depth.shape[0] > 0, ROWS, ROWS - 1)  # no depth gradient: column 9 stays 0
+        columns = wp.where(grad_depth.shape[0] > 0, ROW_WIDTH, DEPTH)  # no depth gradient: the last column stays 0
         leader = lane % WARP_SIZE == 0
         T = T_final
         acc_r = zero
@@ -275,51 +274,52 @@ def composite_kernels(batch: int):
         while batch_end > start:
             batch_start = wp.max(start, batch_end - BATCH)
             ids = wp.tile_load(sorted_ids, shape=BATCH, offset=batch_start, storage="shared")
-            rows = wp.tile_load_indexed(splats, indices=ids, shape=(BATCH, ROWS), offset=(0, 0), axis=0, storage="shared")
+            rows = wp.tile_load_indexed(splats, indices=ids, shape=(BATCH, ROW_WIDTH), offset=(0, 0), axis=0,
+                                        storage="shared")
             count = wp.min(batch_end, warp_last + 1) - batch_start
             for step in range(count):
                 t = count - 1 - step
                 power = gaussian_power(rows, t, cx, cy)
                 vis = wp.exp(-power)
-                opacity = rows[t, 5]
+                opacity = rows[t, OPACITY]
                 alpha = wp.min(grad_splats.dtype(MAX_ALPHA), opacity * vis)
-                valid = batch_start + t <= last and power >= zero and alpha >= grad_splats.dtype(MIN_ALPHA)
+                valid = batch_start + t <= last and power >= zero and alpha >= grad_splats.dtype(ALPHA_THRESHOLD)
                 if warp_any(int(valid)) != 0:
                     g = wp.vector(zero, zero, zero, zero, zero, zero, zero, zero, zero, zero)
                     if valid:
                         ra = one / (one - alpha)
                         T = T * ra
                         weight = alpha * T
-                        c_r = rows[t, 6]
-                        c_g = rows[t, 7]
-                        c_b = rows[t, 8]
-                        z = rows[t, 9]
+                        c_r = rows[t, RED]
+                        c_g = rows[t, GREEN]
+                        c_b = rows[t, BLUE]
+                        z = rows[t, DEPTH]
                         v_alpha = (c_r * T - acc_r * ra) * v_r + (c_g * T - acc_g * ra) * v_g + (c_b * T - acc_b * ra) * v_b
                         v_alpha += (z * T - acc_depth * ra) * v_depth
                         v_alpha += T_final * ra * v_alpha_out - T_final * ra * background_dot
-                        g[6] = weight * v_r
-                        g[7] = weight * v_g
-                        g[8] = weight * v_b
-                        g[9] = weight * v_depth
+                        g[RED] = weight * v_r
+                        g[GREEN] = weight * v_g
+                        g[BLUE] = weight * v_b
+                        g[DEPTH] = weight * v_depth
                         if opacity * vis <= grad_splats.dtype(MAX_ALPHA):
                             v_power = -opacity * vis * v_alpha
-                            dx = rows[t, 0] - cx
-                            dy = rows[t, 1] - cy
-                            g[0] = v_power * (rows[t, 2] * dx + rows[t, 3] * dy)
-                            g[1] = v_power * (rows[t, 3] * dx + rows[t, 4] * dy)
-                            g[2] = grad_splats.dtype(0.5) * v_power * dx * dx
-                            g[3] = v_power * dx * dy
-                            g[4] = grad_splats.dtype(0.5) * v_power * dy * dy
-                            g[5] = vis * v_alpha
+                            dx = rows[t, MEAN_X] - cx
+                            dy = rows[t, MEAN_Y] - cy
+                            g[MEAN_X] = v_power * (rows[t, CONIC_A] * dx + rows[t, CONIC_B] * dy)
+                            g[MEAN_Y] = v_power * (rows[t, CONIC_B] * dx + rows[t, CONIC_C] * dy)
+                            g[CONIC_A] = grad_splats.dtype(0.5) * v_power * dx * dx
+                            g[CONIC_B] = v_power * dx * dy
+                            g[CONIC_C] = grad_splats.dtype(0.5) * v_power * dy * dy
+                            g[OPACITY] = vis * v_alpha
                         acc_r += c_r * weight
                         acc_g += c_g * weight
                         acc_b += c_b * weight
                         acc_depth += z * weight
-                    for k in range(ROWS):
+                    for k in range(ROW_WIDTH):
                         g[k] = warp_sum(g[k])
                     if leader:
                         row = ids[t]
-                        for k in range(ROWS):
+                        for k in range(ROW_WIDTH):
                             if k < columns:
                                 wp.atomic_add(grad_splats, row, k, g[k])
             batch_end = batch_start

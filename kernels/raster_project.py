@@ -5,13 +5,7 @@ with OpenCV axes (x right, y down, z forward), ``K`` is in pixels, pixel ``(i, j
 ``(i + 0.5, j + 0.5)``; quaternions are ``(w, x, y, z)`` and need not be normalised.
 
 One thread per (camera, Gaussian) writes one *projected row* of 10 scalars (the packed record the
-compositing kernels stage through shared memory):
-
-    0, 1  mean2d x, y (pixels)
-    2..4  conic (a, b, c) of the blurred 2D covariance: power = 0.5 (a dx^2 + c dy^2) + b dx dy
-    5     opacity (times the antialiasing compensation in antialiased mode)
-    6..8  colour RGB (SH evaluated towards the Gaussian, + 0.5, clamped at 0; or the given RGB)
-    9     camera-space depth z
+compositing kernels stage through shared memory; its columns are named in :mod:`.raster_row`).
 
 :func:`prepare_cameras` runs first, on one thread: it validates the cameras (and background) and makes
 them camera-relative. A float32 position far from the world origin loses its digits in ``R x + t`` (the two
@@ -20,11 +14,12 @@ to the Gaussians' dtype): the projection kernels use ``x - o`` and viewmats ``V 
 A pure translation: images are unchanged and the gradient of ``x - o`` is the identity.
 
 The ``project_gaussians`` kernel (see :func:`projection_kernels`) also culls (non-finite, z outside
-(near, far), det <= 0 after the blur, opacity < 1/255, off-screen), writes integer pixel radii from the
-opacity-aware extent ``min(3.33, sqrt(2 ln(255 opacity)))`` sigma, the number of tiles each row touches,
-input validation flags and the list of visible rows. Its twin ``project_gaussians_differentiable`` recomputes
-only the differentiable row of the listed visible Gaussians and is launched with ``adjoint=True`` for the
-backward pass (straight-line code, so Warp's automatic adjoint is exact; a float64 gradcheck covers it).
+(near, far), det <= 0 after the blur, opacity < 1/255 (:data:`.raster_row.ALPHA_THRESHOLD`), off-screen), writes
+integer pixel radii from the opacity-aware extent ``min(3.33, sqrt(2 ln(255 opacity)))`` sigma, the number of tiles
+each row touches, input validation flags and the list of visible rows. Its twin
+``project_gaussians_differentiable`` recomputes only the differentiable row of the listed visible Gaussians and is
+launched with ``adjoint=True`` for the backward pass (straight-line code, so Warp's automatic adjoint is exact; a
+float64 gradcheck covers it).
 """
 
 from __future__ import annotations
@@ -35,17 +30,14 @@ from typing import Any, NamedTuple
 import warp as wp
 
 from .lanes import CACHE_LINE_INT64, warp_append, warp_fold_range
+from .raster_row import (
+    ALPHA_LEVELS, ALPHA_THRESHOLD, BLUE, CONIC_A, CONIC_B, CONIC_C, DEPTH, GREEN, MEAN_X, MEAN_Y, OPACITY, RED,
+)  # fmt: skip
 from .raster_tiles import DEPTH_RANGE, DEPTH_RANGE_LINES, NO_DEPTH_BITS, NUM_FLAGS, depth_bits, tile_rect
 from .sh import sh_color
 
-ALPHA_THRESHOLD = 1.0 / 255.0
-"""Opacity/alpha below which a Gaussian contributes nothing (gsplat's ALPHA_THRESHOLD)."""
-
 MAX_EXTENT_SIGMAS = 3.33
 """Largest bounding extent in standard deviations (gsplat's default)."""
-
-ROW_WIDTH = 10
-"""Scalars per projected row."""
 
 (BAD_MEANS, BAD_QUATS, BAD_SCALES, BAD_OPACITIES, BAD_COLORS, BAD_VIEWMATS, BAD_KS, BAD_BACKGROUND, ZERO_QUATS,
  HUGE_COVARIANCE) = range(10)
@@ -171,17 +163,17 @@ def sh_row_color(coeffs: wp.array2d(dtype=Any), n: int, sh_degree: int, mean: An
 def write_row(
     splats: wp.array2d(dtype=Any), i: int, mean2d: Any, conic: Any, opacity: Any, color: Any, depth: Any
 ):
-    """Store one projected row (layout in the module docstring)."""
-    splats[i, 0] = mean2d[0]
-    splats[i, 1] = mean2d[1]
-    splats[i, 2] = conic[0]
-    splats[i, 3] = conic[1]
-    splats[i, 4] = conic[2]
-    splats[i, 5] = opacity
-    splats[i, 6] = color[0]
-    splats[i, 7] = color[1]
-    splats[i, 8] = color[2]
-    splats[i, 9] = depth
+    """Store one projected row (layout in :mod:`.raster_row`)."""
+    splats[i, MEAN_X] = mean2d[0]
+    splats[i, MEAN_Y] = mean2d[1]
+    splats[i, CONIC_A] = conic[0]
+    splats[i, CONIC_B] = conic[1]
+    splats[i, CONIC_C] = conic[2]
+    splats[i, OPACITY] = opacity
+    splats[i, RED] = color[0]
+    splats[i, GREEN] = color[1]
+    splats[i, BLUE] = color[2]
+    splats[i, DEPTH] = depth
 
 
 @wp.func
@@ -415,7 +407,8 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         if not (effective_opacity >= type(opacity)(ALPHA_THRESHOLD)):
             return
         extent = wp.min(
-            type(opacity)(MAX_EXTENT_SIGMAS), wp.sqrt(type(opacity)(2.0) * wp.log(effective_opacity * type(opacity)(255.0)))
+            type(opacity)(MAX_EXTENT_SIGMAS),
+            wp.sqrt(type(opacity)(2.0) * wp.log(effective_opacity * type(opacity)(ALPHA_LEVELS))),
         )
         radius = wp.vec2i(int(wp.ceil(extent * wp.sqrt(blurred[0, 0]))), int(wp.ceil(extent * wp.sqrt(blurred[1, 1]))))
         if radius[0] <= 0 and radius[1] <= 0:

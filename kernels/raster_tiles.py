@@ -26,6 +26,7 @@ from typing import Any
 import warp as wp
 
 from .lanes import CACHE_LINE_INT64
+from .raster_row import DEPTH, MEAN_X, MEAN_Y
 
 wp.set_module_options({"enable_backward": False})
 
@@ -66,10 +67,6 @@ def key_layout(flag_values: list[int]) -> tuple[int, int, int, int]:
     """``(depth_base, depth_shift, depth_bits, bits)`` of the call's sort key as :func:`emit_intersections`
     published it, from the flag values (at least the first :data:`HOST_FLAGS`) read back after it ran."""
     return tuple(flag_values[KEY_LAYOUT : KEY_LAYOUT + 4])
-
-DEPTH_COLUMN = 9
-"""Column of the projected row (see :mod:`codecsplat_warp.kernels.raster_project`) holding camera-space depth."""
-
 
 @wp.func
 def tile_rect(x: Any, y: Any, radius: wp.vec2i, tile_size: int, tiles_x: int, tiles_y: int):
@@ -190,8 +187,8 @@ def emit_intersections(
         if count == wp.int64(0):
             return
     first_tile = (i // num_gaussians) * tiles_x * tiles_y
-    rect = tile_rect(splats[i, 0], splats[i, 1], radii[i], tile_size, tiles_x, tiles_y)
-    low = depth_key(splats[i, DEPTH_COLUMN], layout[0], layout[1])
+    rect = tile_rect(splats[i, MEAN_X], splats[i, MEAN_Y], radii[i], tile_size, tiles_x, tiles_y)
+    low = depth_key(splats[i, DEPTH], layout[0], layout[1])
     depth_key_bits = wp.int64(layout[2])
     k = int(inclusive_offsets[i] - count)
     for ty in range(rect[1], rect[3]):

@@ -7,7 +7,7 @@ import torch
 from codecsplat_warp.synthetic import make_rig, rotation
 
 from codecsplat_warp.cameras import Cameras, intrinsics_matrix, rigid_inverse
-from codecsplat_warp.device import check_tensor, common_device
+from codecsplat_warp.checks import check_tensor, common_device
 from codecsplat_warp.errors import CameraError, DeviceMismatchError, InputError
 
 

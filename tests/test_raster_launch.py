@@ -1,6 +1,6 @@
 """codecsplat_warp.device.launch, which the rasterizer relies on for a low host overhead: a launch is checked and
 recorded once per argument types (or caller-given layout) and thread, then replayed with new tensors, shapes and
-scalars; and device.radix_sort_pairs, the sort the rasterizer calls on tensors directly."""
+scalars; and ops.primitives.radix_sort_pairs, the sort the rasterizer calls on tensors directly."""
 
 from __future__ import annotations
 
@@ -15,8 +15,9 @@ import torch
 import warp as wp
 from conftest import DEVICES
 
-from codecsplat_warp.device import inclusive_scan, launch, radix_sort_pairs, stage_host_values, vectors, warp_scope
+from codecsplat_warp.device import launch, stage_host_values, vectors, warp_scope
 from codecsplat_warp.errors import InputError
+from codecsplat_warp.ops.primitives import inclusive_scan, radix_sort_pairs
 
 
 @wp.kernel

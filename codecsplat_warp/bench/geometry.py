@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..device import set_validation, validation_enabled
+from ..checks import set_validation, validation_enabled
 from ..errors import InputError
 from ..measure import cuda_peak_bytes, format_table, machine_name, rss_peak_growth_bytes, time_call
 from ..ops.geometry import all_other_views, reproject_average

@@ -20,7 +20,7 @@ import os
 import kornia
 import torch
 
-from ..device import check_tensor, common_device
+from ..checks import check_tensor, common_device
 from ..errors import InputError
 from .lpips import LPIPS, resolve_weights_dir
 

@@ -20,7 +20,7 @@ import torch
 from safetensors.torch import load_file
 from torch import nn
 
-from ..device import check_tensor, common_device
+from ..checks import check_tensor, common_device
 from ..errors import InputError
 from ..nn.layers import copy_weights, torchvision_features, vgg16_trunk
 

@@ -8,17 +8,18 @@ float32), and follow :mod:`codecsplat_warp.cameras` conventions. Camera paramete
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
 
 from ..cameras import Cameras
-from ..device import (
-    check_same_dtype, check_tensor, check_values, common_device, launch, row_chunks, run_concurrently, warp_scope,
-)
+from ..checks import check_same_dtype, check_tensor, check_values, common_device
+from ..device import launch, warp_scope
 from ..errors import DeviceMismatchError, InputError
 from ..kernels import reproject as reproject_kernels
 from ..kernels import unproject as unproject_kernels
+from .primitives import row_chunks, run_concurrently
 
 _LOW_PRECISION = (torch.float16, torch.bfloat16)
 _ACCEPTED = (torch.float32, torch.float64, torch.float16, torch.bfloat16)
@@ -175,12 +176,8 @@ class _ReprojectAverage(torch.autograd.Function):
         V, C, H, W = feat.shape
         avg = torch.zeros_like(feat)
         count = torch.empty(V, H, W, dtype=torch.int32, device=feat.device)
-        with warp_scope(feat.device) as wdev:
-            run_concurrently([
-                lambda row0=row0, rows=rows: launch(reproject_kernels.reproject_average_forward, (V, rows, W),
-                                                    [feat, depth, intrinsics, rel, neighbours, avg, count, row0], wdev)
-                for row0, rows in row_chunks(H, feat.device)
-            ])
+        _launch_by_rows(reproject_kernels.reproject_average_forward, (V, H, W),
+                        [feat, depth, intrinsics, rel, neighbours, avg, count], feat.device)
         ctx.save_for_backward(feat, depth, intrinsics, rel, neighbours, count)
         ctx.mark_non_differentiable(count)
         return avg, count
@@ -191,16 +188,10 @@ class _ReprojectAverage(torch.autograd.Function):
         grad_avg = grad_avg.contiguous()
         grad_depth = torch.empty_like(depth)
         V, _, H, W = feat.shape
-        chunks = row_chunks(H, feat.device)
-        grad_feats = [torch.zeros_like(feat) for _ in chunks]  # one per concurrent piece: scatters overlap
-        with warp_scope(feat.device) as wdev:
-            run_concurrently([
-                lambda row0=row0, rows=rows, grad_feat=grad_feat: launch(
-                    reproject_kernels.reproject_average_backward, (V, rows, W),
-                    [grad_avg, feat, depth, intrinsics, rel, neighbours, count, grad_feat, grad_depth, row0], wdev)
-                for (row0, rows), grad_feat in zip(chunks, grad_feats)
-            ])
-        return _sum(grad_feats), grad_depth, None, None, None
+        grad_feat = _launch_by_rows(reproject_kernels.reproject_average_backward, (V, H, W),
+                                    [grad_avg, feat, depth, intrinsics, rel, neighbours, count, _PER_PIECE, grad_depth],
+                                    feat.device, scatter_like=feat)  # fmt: skip
+        return grad_feat, grad_depth, None, None, None
 
 
 class _CostVolume(torch.autograd.Function):
@@ -210,12 +201,8 @@ class _CostVolume(torch.autograd.Function):
         D = candidates.shape[1]
         cost = torch.empty(V, D, H, W, dtype=feat.dtype, device=feat.device)
         count = torch.empty(V, D, H, W, dtype=torch.int32, device=feat.device)
-        with warp_scope(feat.device) as wdev:
-            run_concurrently([
-                lambda row0=row0, rows=rows: launch(reproject_kernels.cost_volume_forward, (V, D, rows, W),
-                                                    [feat, candidates, intrinsics, rel, neighbours, cost, count, row0], wdev)
-                for row0, rows in row_chunks(H, feat.device)
-            ])
+        _launch_by_rows(reproject_kernels.cost_volume_forward, (V, D, H, W),
+                        [feat, candidates, intrinsics, rel, neighbours, cost, count], feat.device)
         ctx.save_for_backward(feat, candidates, intrinsics, rel, neighbours, count)
         return cost
 
@@ -223,17 +210,10 @@ class _CostVolume(torch.autograd.Function):
     def backward(ctx, grad_cost):
         feat, candidates, intrinsics, rel, neighbours, count = ctx.saved_tensors
         grad_cost = grad_cost.contiguous()
-        V, D, H, W = count.shape
-        chunks = row_chunks(H, feat.device)
-        grad_feats = [torch.zeros_like(feat) for _ in chunks]  # one per concurrent piece: scatters overlap
-        with warp_scope(feat.device) as wdev:
-            run_concurrently([
-                lambda row0=row0, rows=rows, grad_feat=grad_feat: launch(
-                    reproject_kernels.cost_volume_backward, (V, D, rows, W),
-                    [grad_cost, feat, candidates, intrinsics, rel, neighbours, count, grad_feat, row0], wdev)
-                for (row0, rows), grad_feat in zip(chunks, grad_feats)
-            ])
-        return _sum(grad_feats), None, None, None, None
+        grad_feat = _launch_by_rows(reproject_kernels.cost_volume_backward, count.shape,
+                                    [grad_cost, feat, candidates, intrinsics, rel, neighbours, count, _PER_PIECE],
+                                    feat.device, scatter_like=feat)  # fmt: skip
+        return grad_feat, None, None, None, None
 
 
 # --------------------------------------------------------------------------------------------------
@@ -292,11 +272,34 @@ def _intrinsics_vector(cameras: Cameras) -> torch.Tensor:
     return torch.stack([K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]], dim=-1).contiguous()
 
 
-def _sum(tensors: list[torch.Tensor]) -> torch.Tensor:
-    """Sum of per-piece gradient buffers (the first one, summed into in place)."""
-    total = tensors[0]
-    for t in tensors[1:]:
-        total += t
+_PER_PIECE = object()
+"""Stands, in the arguments given to :func:`_launch_by_rows`, for the gradient buffer of each row piece."""
+
+
+def _launch_by_rows(kernel, dims: tuple[int, ...], args: list, device: torch.device,
+                    scatter_like: torch.Tensor | None = None) -> torch.Tensor | None:  # fmt: skip
+    """Launch a row-parallel kernel over ``dims = (*leading, H, W)`` in pieces of image rows (:func:`row_chunks`:
+    one piece on CUDA, one per CPU thread on the CPU, run concurrently), each piece with the kernel arguments
+    ``args`` followed by its first row (the kernel's last argument; its launch covers ``(*leading, rows, W)``).
+
+    A backward kernel scatters (atomic adds) into a gradient buffer at places other pieces write too: given
+    ``scatter_like``, each piece gets its own zeroed buffer of that tensor's shape and dtype where :data:`_PER_PIECE`
+    stands in ``args``, and the buffers' sum (into the first piece's) is returned; None without ``scatter_like``.
+    """
+    *leading, height, width = dims
+    chunks = row_chunks(height, device)
+    buffers = [None] * len(chunks) if scatter_like is None else [torch.zeros_like(scatter_like) for _ in chunks]
+    with warp_scope(device) as wdev:
+        run_concurrently([
+            functools.partial(launch, kernel, (*leading, rows, width),
+                              [buffer if arg is _PER_PIECE else arg for arg in args] + [row0], wdev)  # fmt: skip
+            for (row0, rows), buffer in zip(chunks, buffers)
+        ])
+    if scatter_like is None:
+        return None
+    total = buffers[0]
+    for buffer in buffers[1:]:
+        total += buffer
     return total
 
 

@@ -13,7 +13,8 @@ Function (or, when nothing needs a gradient, called without one) so that a call 
    buffers of step 4 are cut to the budget).
 4. One key ``[camera | tile | depth]`` per intersection, 32 bits when the call's depth range allows, else 64 (the
    layout is computed on the device, see :mod:`codecsplat_warp.kernels.raster_tiles`); Warp's radix sort
-   (:func:`~codecsplat_warp.device.radix_sort_pairs`) on the used bits only, per-tile ranges from the sorted keys.
+   (:func:`~codecsplat_warp.ops.primitives.radix_sort_pairs`) on the used bits only, per-tile ranges from the
+   sorted keys.
    On CUDA, a call with the shape of an earlier one emits, sorts and composites *before* the host read, into
    buffers of a capacity guessed from that call (:class:`_Speculation`), so that neither the GPU nor the host waits
    for the other around the read; when the read shows the guess too small (or the key too wide), the keys are
@@ -37,14 +38,12 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
-import warp as wp
 
-from ..device import (
-    FLOAT_DTYPES, check_finite, check_tensor, common_device, inclusive_scan, launch, matrices, radix_sort_pairs,
-    stage_host_values, validation_enabled, vectors, warp_dtype, warp_scope,
-)  # fmt: skip
+from ..checks import FLOAT_DTYPES, check_finite, check_tensor, common_device, validation_enabled
+from ..device import launch, matrices, stage_host_values, vectors, warp_dtype, warp_scope
 from ..errors import InputError, RasterMemoryError
-from ..kernels import raster_composite, raster_project, raster_tiles
+from ..kernels import raster_composite, raster_project, raster_row, raster_tiles
+from .primitives import inclusive_scan, radix_sort_pairs
 
 _LOW_PRECISION = (torch.float16, torch.bfloat16)
 
@@ -77,6 +76,81 @@ _CAMERA_FLAGS = (raster_project.BAD_VIEWMATS, raster_project.BAD_KS, raster_proj
 """Flags that count non-finite values (the others count Gaussians)."""
 
 
+# --------------------------------------------------------------------------------------------------
+# Public ops
+def rasterize(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    near: float = 0.01,
+    far: float = 1e10,
+    background: torch.Tensor | None = None,
+    mode: str = "classic",
+    sh_degree: int | None = None,
+    render_depth: bool = True,
+    tile_size: int = 16,
+    max_intersection_bytes: int = DEFAULT_MAX_INTERSECTION_BYTES,
+    min_transmittance: float = DEFAULT_MIN_TRANSMITTANCE,
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, RasterMeta]:
+    """Render N 3D Gaussians into B pinhole cameras (differentiable, gsplat-compatible conventions).
+
+    Args:
+        means: ``[N,3]`` world positions.
+        quats: ``[N,4]`` rotations as (w, x, y, z), need not be normalised (a zero quaternion is an error).
+        scales: ``[N,3]`` standard deviations along the rotated axes (world units, >= 0).
+        opacities: ``[N]`` in [0, 1].
+        colors: ``[N,3]`` RGB, or ``[N,K,3]`` SH coefficients; SH colour is ``max(SH(dir) + 0.5, 0)`` with
+            ``dir`` from the camera centre to the mean (gsplat's convention).
+        viewmats: ``[B,4,4]`` world-to-camera (OpenCV axes). Not differentiated.
+        Ks: ``[B,3,3]`` intrinsics in pixels, pixel centres at +0.5. Not differentiated.
+        width, height: image size in pixels (any size >= 1).
+        near, far: Gaussians with camera depth outside ``(near, far)`` are culled.
+        background: ``[B,3]`` colour behind the splats, or None (black, no gradient).
+        mode: ``"classic"`` or ``"antialiased"`` (opacity times ``sqrt(det(cov2d) / det(cov2d + 0.3 I))``).
+        sh_degree: SH degree 0..3 to evaluate (SH colours only); None uses ``sqrt(K) - 1``.
+        render_depth: also render expected depth ``sum w z / max(alpha, 1e-10)``; False skips that work.
+        tile_size: tile edge in pixels (1..32; 16 is the tuned default).
+        max_intersection_bytes: budget for the intersection sort buffers (16 bytes per intersection with 32-bit
+            sort keys, 24 with 64-bit ones; see :class:`SortKey`). On CUDA a call may hold sort buffers for up to
+            1/8 more intersections than it has (see :class:`_Speculation`), never more than this budget.
+        min_transmittance: early stop, in [0, 1): a pixel stops compositing before the first Gaussian that
+            would take its transmittance ``T`` to this value or below (gsplat's 1e-4 by default). Larger
+            values skip more of the hidden Gaussians (faster, a larger error against an exact render);
+            0 composites every Gaussian until ``T`` underflows, where the backward, which rebuilds ``T`` by
+            division from the final ``T``, loses accuracy behind nearly opaque stacks.
+
+    Returns:
+        ``(rgb [B,H,W,3], depth [B,H,W,1] or None, alpha [B,H,W,1], meta)`` in the dtype of ``means``
+        (float32 or float64); see :class:`RasterMeta`.
+
+    Raises:
+        InputError: bad shape, dtype, mode, degree, size or threshold; NaN/Inf in any input; zero quaternion.
+        DeviceMismatchError: inputs on different devices.
+        RasterMemoryError: the intersections would need more than ``max_intersection_bytes``.
+    """
+    means, quats, scales, opacities, colors, viewmats, Ks, background, settings = _prepare(
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, far, background, mode,
+        sh_degree, render_depth, tile_size, min_transmittance,
+    )  # fmt: skip
+    if means.shape[0] == 0 or viewmats.shape[0] == 0:
+        for name, tensor in (("viewmats", viewmats), ("Ks", Ks), ("background", background)):
+            if tensor is not None:
+                check_finite(name, tensor)
+        return _empty_render(means, viewmats, background, settings)
+    inputs = (means, quats, scales, opacities, colors, background, viewmats, Ks, settings, max_intersection_bytes)
+    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in inputs[:6]):
+        color, depth, alpha, radii, count = _Rasterize.apply(*inputs)
+    else:  # nothing to differentiate: no autograd bookkeeping
+        color, depth, alpha, radii, count = _render(*inputs)[0]
+    return color, depth, alpha, RasterMeta(radii, count, settings.tile_size)
+
+
 @dataclass(frozen=True)
 class RasterMeta:
     """Side outputs of :func:`rasterize`.
@@ -98,6 +172,60 @@ class RasterMeta:
         return (self.radii > 0).any(dim=-1).sum(dim=1)
 
 
+def project_gaussians(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    near: float = 0.01,
+    far: float = 1e10,
+    mode: str = "classic",
+    sh_degree: int | None = None,
+) -> ProjectedGaussians:
+    """The projection stage of :func:`rasterize` alone (same arguments, same checks and errors)."""
+    means, quats, scales, opacities, colors, viewmats, Ks, _, settings = _prepare(
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, far, None, mode,
+        sh_degree, True, 16, DEFAULT_MIN_TRANSMITTANCE,
+    )  # fmt: skip
+    coeffs = _sh_coefficients(colors)
+    splats, radii, flags = _ProjectGaussians.apply(means, quats, scales, opacities, coeffs, viewmats, Ks, settings)
+    if validation_enabled() and means.shape[0]:
+        _raise_on_flags(flags.tolist())
+    return ProjectedGaussians(
+        means2d=splats[..., raster_row.MEAN_X : raster_row.MEAN_Y + 1],
+        conics=splats[..., raster_row.CONIC_A : raster_row.CONIC_C + 1],
+        opacities=splats[..., raster_row.OPACITY],
+        colors=splats[..., raster_row.RED : raster_row.BLUE + 1],
+        depths=splats[..., raster_row.DEPTH],
+        radii=radii,
+    )
+
+
+@dataclass(frozen=True)
+class ProjectedGaussians:
+    """Per-camera 2D Gaussians (differentiable w.r.t. the 3D parameters); culled entries are zero.
+
+    Attributes:
+        means2d: ``[B,N,2]`` pixel positions; conics: ``[B,N,3]`` (a, b, c) of the inverse blurred 2D
+        covariance; opacities: ``[B,N]`` (compensated in antialiased mode); colors: ``[B,N,3]``;
+        depths: ``[B,N]`` camera z; radii: ``[B,N,2]`` int32 (0 = culled).
+    """
+
+    means2d: torch.Tensor
+    conics: torch.Tensor
+    opacities: torch.Tensor
+    colors: torch.Tensor
+    depths: torch.Tensor
+    radii: torch.Tensor
+
+
+# --------------------------------------------------------------------------------------------------
+# Argument checks and the settings of a call
 class _Settings(NamedTuple):
     """The checked settings of one call, and the tile grid they imply.
 
@@ -120,6 +248,96 @@ class _Settings(NamedTuple):
     tiles_y: int
 
 
+def _prepare(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, far, background, mode,
+             sh_degree, render_depth, tile_size, min_transmittance):  # fmt: skip
+    """Check every argument; return contiguous tensors (half-precision Gaussians as float32; cameras detached, in
+    their float dtype) and the settings."""
+    dims: dict[str, int] = {}
+    means = check_tensor("means", means, ("N", 3), (*FLOAT_DTYPES, *_LOW_PRECISION), dims=dims)
+    given = means.dtype
+    quats = check_tensor("quats", quats, ("N", 4), (given,), dims)
+    scales = check_tensor("scales", scales, ("N", 3), (given,), dims)
+    opacities = check_tensor("opacities", opacities, ("N",), (given,), dims)
+    if not isinstance(colors, torch.Tensor) or colors.dim() not in (2, 3):
+        raise InputError("colors must be a tensor of shape [N,3] (RGB) or [N,K,3] (SH coefficients)")
+    colors = check_tensor("colors", colors, ("N", 3) if colors.dim() == 2 else ("N", None, 3), (given,), dims)
+    viewmats = check_tensor("viewmats", viewmats, ("B", 4, 4), dims=dims)
+    Ks = check_tensor("Ks", Ks, ("B", 3, 3), dims=dims)
+    if background is not None:
+        background = check_tensor("background", background, ("B", 3), (given,), dims)
+    if given in _LOW_PRECISION:  # half inputs (autocast) are computed in float32, like the geometry ops
+        means, quats, scales, opacities, colors = (t.float() for t in (means, quats, scales, opacities, colors))
+        background = None if background is None else background.float()
+    common_device(
+        means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmats=viewmats, Ks=Ks,
+        background=background,
+    )  # fmt: skip
+    settings = _make_settings(colors, width, height, near, far, mode, sh_degree, render_depth, tile_size,
+                              min_transmittance)  # fmt: skip
+    _check_key_bits(viewmats.shape[0], settings)
+    return means, quats, scales, opacities, colors, viewmats.detach(), Ks.detach(), background, settings
+
+
+def _make_settings(colors, width, height, near, far, mode, sh_degree, render_depth, tile_size,
+                   min_transmittance) -> _Settings:  # fmt: skip
+    for name, value in (("width", width), ("height", height)):
+        if isinstance(value, bool) or int(value) != value or value < 1:
+            raise InputError(f"{name} must be a positive integer, got {value!r}")
+    if mode not in MODES:
+        raise InputError(f"mode must be one of {MODES}, got {mode!r}")
+    if isinstance(tile_size, bool) or int(tile_size) != tile_size or not 1 <= tile_size <= 32:
+        raise InputError(f"tile_size must be an integer in 1..32, got {tile_size!r}")
+    if not (math.isfinite(near) and near > 0 and far > near):
+        raise InputError(f"near and far must satisfy 0 < near < far, got near={near}, far={far}")
+    degree = _sh_degree(colors, sh_degree)
+    width, height, tile_size = int(width), int(height), int(tile_size)
+    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
+    return _Settings(width, height, float(near), float(far), degree, mode == "antialiased", bool(render_depth),
+                     tile_size, _transmittance_threshold(min_transmittance), tiles_x, tiles_y)  # fmt: skip
+
+
+def _transmittance_threshold(value) -> float:
+    """``min_transmittance`` as a float in [0, 1), else InputError."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0.0 <= value < 1.0:
+        raise InputError(f"min_transmittance must be a real number in [0, 1), got {value!r}")
+    return float(value)
+
+
+def _sh_degree(colors: torch.Tensor, sh_degree: int | None) -> int:
+    """-1 for RGB colours, else the SH degree to evaluate (checked against K)."""
+    if colors.dim() == 2:
+        if sh_degree is not None:
+            raise InputError("sh_degree is given but colors is [N,3] RGB; pass SH coefficients [N,K,3]")
+        return -1
+    K = colors.shape[1]
+    if sh_degree is None:
+        root = math.isqrt(K)
+        if root * root != K or not 1 <= root <= 4:
+            raise InputError(f"colors has K={K} SH coefficients, not (d+1)^2 for d in 0..3; pass sh_degree")
+        return root - 1
+    if isinstance(sh_degree, bool) or int(sh_degree) != sh_degree or not 0 <= sh_degree <= 3:
+        raise InputError(f"sh_degree must be 0, 1, 2 or 3, got {sh_degree!r}")
+    if K < (sh_degree + 1) ** 2:
+        raise InputError(f"sh_degree={sh_degree} needs K >= {(sh_degree + 1) ** 2} SH coefficients, colors has K={K}")
+    return int(sh_degree)
+
+
+MAX_TILE_BITS = 31
+"""Bits of the flat tile index ``camera * tiles_per_image + tile``, an int32 in the kernels (a call has fewer than
+2^31 flat tiles); a 64-bit key keeps its sign bit 0 with the 31 bits of a positive float32 depth beside it."""
+
+
+def _check_key_bits(num_cameras: int, settings: _Settings) -> None:
+    tiles = num_cameras * settings.tiles_x * settings.tiles_y
+    if tiles >= 2**MAX_TILE_BITS:
+        raise InputError(
+            f"{num_cameras} cameras x {settings.tiles_x * settings.tiles_y} tiles do not fit the "
+            f"{MAX_TILE_BITS}-bit tile part of the sort key; render fewer cameras per call or use larger tiles"
+        )
+
+
+# --------------------------------------------------------------------------------------------------
+# Projection (stages 1 and 2)
 class _Cameras(NamedTuple):
     """Cameras as the projection kernels take them, in the Gaussians' dtype (views of one buffer).
 
@@ -137,7 +355,7 @@ def _rows_and_cameras(means: torch.Tensor, num_cameras: int) -> tuple[torch.Tens
     """Uninitialised projected rows ``[B*N, 10]`` and prepared cameras (:class:`_Cameras`) in the dtype of ``means``
     ``[N,3]`` (separate allocations: fewer host operations than views of one buffer)."""
     B = num_cameras
-    rows = means.new_empty(B * means.shape[0], raster_project.ROW_WIDTH)
+    rows = means.new_empty(B * means.shape[0], raster_row.ROW_WIDTH)
     return rows, _Cameras(means.new_empty(B, 4, 4), means.new_empty(B, 3, 3), means.new_empty(3))
 
 
@@ -285,12 +503,12 @@ class _ProjectGaussians(torch.autograd.Function):
         ctx.visible = visible
         ctx.save_for_backward(means, quats, scales, opacities, coeffs)
         ctx.mark_non_differentiable(radii, flags)
-        return splats.view(B, N, raster_project.ROW_WIDTH), radii.view(B, N, 2), flags
+        return splats.view(B, N, raster_row.ROW_WIDTH), radii.view(B, N, 2), flags
 
     @staticmethod
     def backward(ctx, grad_splats, _grad_radii, _grad_flags):
         means, quats, scales, opacities, coeffs = ctx.saved_tensors
-        grad_rows = grad_splats.reshape(-1, raster_project.ROW_WIDTH).contiguous()
+        grad_rows = grad_splats.reshape(-1, raster_row.ROW_WIDTH).contiguous()
         with warp_scope(means.device) as wdev:
             grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs, ctx.cameras, ctx.visible,
                                       ctx.settings, wdev)  # fmt: skip
@@ -313,6 +531,8 @@ def _zero_length(device: torch.device, dtype: torch.dtype, inner: tuple[int, ...
     return torch.empty(0, *inner, dtype=dtype, device=device)
 
 
+# --------------------------------------------------------------------------------------------------
+# The render and its backward (the stages in order: _render)
 CPU_BATCH = 16
 """Rows a one-pixel CPU block stages per step (CUDA blocks stage block_dim rows, one per lane)."""
 
@@ -369,7 +589,7 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
     """The forward render on checked inputs: ``((rgb [B,H,W,3], depth [B,H,W,1] or None, alpha [B,H,W,1],
     radii [B,N,2] int32, intersection count), what the backward needs)``."""
     B, N = viewmats.shape[0], means.shape[0]
-    device, dtype = means.device, means.dtype
+    device = means.device
     coeffs = _sh_coefficients(colors)
     colors_or_black = _absent(means, 3) if background is None else background
     ints = means.new_empty(2 * B * N + raster_tiles.NUM_FLAGS, dtype=torch.int64)
@@ -461,215 +681,8 @@ def _flat_gradient(grad: torch.Tensor | None, like: torch.Tensor, inner: tuple[i
     return grad.reshape(-1, *inner).contiguous()
 
 
-def rasterize(
-    means: torch.Tensor,
-    quats: torch.Tensor,
-    scales: torch.Tensor,
-    opacities: torch.Tensor,
-    colors: torch.Tensor,
-    viewmats: torch.Tensor,
-    Ks: torch.Tensor,
-    width: int,
-    height: int,
-    near: float = 0.01,
-    far: float = 1e10,
-    background: torch.Tensor | None = None,
-    mode: str = "classic",
-    sh_degree: int | None = None,
-    render_depth: bool = True,
-    tile_size: int = 16,
-    max_intersection_bytes: int = DEFAULT_MAX_INTERSECTION_BYTES,
-    min_transmittance: float = DEFAULT_MIN_TRANSMITTANCE,
-) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, RasterMeta]:
-    """Render N 3D Gaussians into B pinhole cameras (differentiable, gsplat-compatible conventions).
-
-    Args:
-        means: ``[N,3]`` world positions.
-        quats: ``[N,4]`` rotations as (w, x, y, z), need not be normalised (a zero quaternion is an error).
-        scales: ``[N,3]`` standard deviations along the rotated axes (world units, >= 0).
-        opacities: ``[N]`` in [0, 1].
-        colors: ``[N,3]`` RGB, or ``[N,K,3]`` SH coefficients; SH colour is ``max(SH(dir) + 0.5, 0)`` with
-            ``dir`` from the camera centre to the mean (gsplat's convention).
-        viewmats: ``[B,4,4]`` world-to-camera (OpenCV axes). Not differentiated.
-        Ks: ``[B,3,3]`` intrinsics in pixels, pixel centres at +0.5. Not differentiated.
-        width, height: image size in pixels (any size >= 1).
-        near, far: Gaussians with camera depth outside ``(near, far)`` are culled.
-        background: ``[B,3]`` colour behind the splats, or None (black, no gradient).
-        mode: ``"classic"`` or ``"antialiased"`` (opacity times ``sqrt(det(cov2d) / det(cov2d + 0.3 I))``).
-        sh_degree: SH degree 0..3 to evaluate (SH colours only); None uses ``sqrt(K) - 1``.
-        render_depth: also render expected depth ``sum w z / max(alpha, 1e-10)``; False skips that work.
-        tile_size: tile edge in pixels (1..32; 16 is the tuned default).
-        max_intersection_bytes: budget for the intersection sort buffers (16 bytes per intersection with 32-bit
-            sort keys, 24 with 64-bit ones; see :class:`SortKey`). On CUDA a call may hold sort buffers for up to
-            1/8 more intersections than it has (see :class:`_Speculation`), never more than this budget.
-        min_transmittance: early stop, in [0, 1): a pixel stops compositing before the first Gaussian that
-            would take its transmittance ``T`` to this value or below (gsplat's 1e-4 by default). Larger
-            values skip more of the hidden Gaussians (faster, a larger error against an exact render);
-            0 composites every Gaussian until ``T`` underflows, where the backward, which rebuilds ``T`` by
-            division from the final ``T``, loses accuracy behind nearly opaque stacks.
-
-    Returns:
-        ``(rgb [B,H,W,3], depth [B,H,W,1] or None, alpha [B,H,W,1], meta)`` in the dtype of ``means``
-        (float32 or float64); see :class:`RasterMeta`.
-
-    Raises:
-        InputError: bad shape, dtype, mode, degree, size or threshold; NaN/Inf in any input; zero quaternion.
-        DeviceMismatchError: inputs on different devices.
-        RasterMemoryError: the intersections would need more than ``max_intersection_bytes``.
-    """
-    means, quats, scales, opacities, colors, viewmats, Ks, background, settings = _prepare(
-        means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, far, background, mode,
-        sh_degree, render_depth, tile_size, min_transmittance,
-    )  # fmt: skip
-    if means.shape[0] == 0 or viewmats.shape[0] == 0:
-        for name, tensor in (("viewmats", viewmats), ("Ks", Ks), ("background", background)):
-            if tensor is not None:
-                check_finite(name, tensor)
-        return _empty_render(means, viewmats, background, settings)
-    inputs = (means, quats, scales, opacities, colors, background, viewmats, Ks, settings, max_intersection_bytes)
-    if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in inputs[:6]):
-        color, depth, alpha, radii, count = _Rasterize.apply(*inputs)
-    else:  # nothing to differentiate: no autograd bookkeeping
-        color, depth, alpha, radii, count = _render(*inputs)[0]
-    return color, depth, alpha, RasterMeta(radii, count, settings.tile_size)
-
-
-@dataclass(frozen=True)
-class ProjectedGaussians:
-    """Per-camera 2D Gaussians (differentiable w.r.t. the 3D parameters); culled entries are zero.
-
-    Attributes:
-        means2d: ``[B,N,2]`` pixel positions; conics: ``[B,N,3]`` (a, b, c) of the inverse blurred 2D
-        covariance; opacities: ``[B,N]`` (compensated in antialiased mode); colors: ``[B,N,3]``;
-        depths: ``[B,N]`` camera z; radii: ``[B,N,2]`` int32 (0 = culled).
-    """
-
-    means2d: torch.Tensor
-    conics: torch.Tensor
-    opacities: torch.Tensor
-    colors: torch.Tensor
-    depths: torch.Tensor
-    radii: torch.Tensor
-
-
-def project_gaussians(
-    means: torch.Tensor,
-    quats: torch.Tensor,
-    scales: torch.Tensor,
-    opacities: torch.Tensor,
-    colors: torch.Tensor,
-    viewmats: torch.Tensor,
-    Ks: torch.Tensor,
-    width: int,
-    height: int,
-    near: float = 0.01,
-    far: float = 1e10,
-    mode: str = "classic",
-    sh_degree: int | None = None,
-) -> ProjectedGaussians:
-    """The projection stage of :func:`rasterize` alone (same arguments, same checks and errors)."""
-    means, quats, scales, opacities, colors, viewmats, Ks, _, settings = _prepare(
-        means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, far, None, mode,
-        sh_degree, True, 16, DEFAULT_MIN_TRANSMITTANCE,
-    )  # fmt: skip
-    coeffs = _sh_coefficients(colors)
-    splats, radii, flags = _ProjectGaussians.apply(means, quats, scales, opacities, coeffs, viewmats, Ks, settings)
-    if validation_enabled() and means.shape[0]:
-        _raise_on_flags(flags.tolist())
-    return ProjectedGaussians(
-        means2d=splats[..., 0:2], conics=splats[..., 2:5], opacities=splats[..., 5], colors=splats[..., 6:9],
-        depths=splats[..., 9], radii=radii,
-    )  # fmt: skip
-
-
-def _prepare(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, far, background, mode,
-             sh_degree, render_depth, tile_size, min_transmittance):  # fmt: skip
-    """Check every argument; return contiguous tensors (half-precision Gaussians as float32; cameras detached, in
-    their float dtype) and the settings."""
-    dims: dict[str, int] = {}
-    means = check_tensor("means", means, ("N", 3), (*FLOAT_DTYPES, *_LOW_PRECISION), dims=dims)
-    given = means.dtype
-    quats = check_tensor("quats", quats, ("N", 4), (given,), dims)
-    scales = check_tensor("scales", scales, ("N", 3), (given,), dims)
-    opacities = check_tensor("opacities", opacities, ("N",), (given,), dims)
-    if not isinstance(colors, torch.Tensor) or colors.dim() not in (2, 3):
-        raise InputError("colors must be a tensor of shape [N,3] (RGB) or [N,K,3] (SH coefficients)")
-    colors = check_tensor("colors", colors, ("N", 3) if colors.dim() == 2 else ("N", None, 3), (given,), dims)
-    viewmats = check_tensor("viewmats", viewmats, ("B", 4, 4), dims=dims)
-    Ks = check_tensor("Ks", Ks, ("B", 3, 3), dims=dims)
-    if background is not None:
-        background = check_tensor("background", background, ("B", 3), (given,), dims)
-    if given in _LOW_PRECISION:  # half inputs (autocast) are computed in float32, like the geometry ops
-        means, quats, scales, opacities, colors = (t.float() for t in (means, quats, scales, opacities, colors))
-        background = None if background is None else background.float()
-    common_device(
-        means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmats=viewmats, Ks=Ks,
-        background=background,
-    )  # fmt: skip
-    settings = _make_settings(colors, width, height, near, far, mode, sh_degree, render_depth, tile_size,
-                              min_transmittance)  # fmt: skip
-    _check_key_bits(viewmats.shape[0], settings)
-    return means, quats, scales, opacities, colors, viewmats.detach(), Ks.detach(), background, settings
-
-
-def _make_settings(colors, width, height, near, far, mode, sh_degree, render_depth, tile_size,
-                   min_transmittance) -> _Settings:  # fmt: skip
-    for name, value in (("width", width), ("height", height)):
-        if isinstance(value, bool) or int(value) != value or value < 1:
-            raise InputError(f"{name} must be a positive integer, got {value!r}")
-    if mode not in MODES:
-        raise InputError(f"mode must be one of {MODES}, got {mode!r}")
-    if isinstance(tile_size, bool) or int(tile_size) != tile_size or not 1 <= tile_size <= 32:
-        raise InputError(f"tile_size must be an integer in 1..32, got {tile_size!r}")
-    if not (math.isfinite(near) and near > 0 and far > near):
-        raise InputError(f"near and far must satisfy 0 < near < far, got near={near}, far={far}")
-    degree = _sh_degree(colors, sh_degree)
-    width, height, tile_size = int(width), int(height), int(tile_size)
-    tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
-    return _Settings(width, height, float(near), float(far), degree, mode == "antialiased", bool(render_depth),
-                     tile_size, _transmittance_threshold(min_transmittance), tiles_x, tiles_y)  # fmt: skip
-
-
-def _transmittance_threshold(value) -> float:
-    """``min_transmittance`` as a float in [0, 1), else InputError."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0.0 <= value < 1.0:
-        raise InputError(f"min_transmittance must be a real number in [0, 1), got {value!r}")
-    return float(value)
-
-
-def _sh_degree(colors: torch.Tensor, sh_degree: int | None) -> int:
-    """-1 for RGB colours, else the SH degree to evaluate (checked against K)."""
-    if colors.dim() == 2:
-        if sh_degree is not None:
-            raise InputError("sh_degree is given but colors is [N,3] RGB; pass SH coefficients [N,K,3]")
-        return -1
-    K = colors.shape[1]
-    if sh_degree is None:
-        root = math.isqrt(K)
-        if root * root != K or not 1 <= root <= 4:
-            raise InputError(f"colors has K={K} SH coefficients, not (d+1)^2 for d in 0..3; pass sh_degree")
-        return root - 1
-    if isinstance(sh_degree, bool) or int(sh_degree) != sh_degree or not 0 <= sh_degree <= 3:
-        raise InputError(f"sh_degree must be 0, 1, 2 or 3, got {sh_degree!r}")
-    if K < (sh_degree + 1) ** 2:
-        raise InputError(f"sh_degree={sh_degree} needs K >= {(sh_degree + 1) ** 2} SH coefficients, colors has K={K}")
-    return int(sh_degree)
-
-
-MAX_TILE_BITS = 31
-"""Bits of the flat tile index ``camera * tiles_per_image + tile``, an int32 in the kernels (a call has fewer than
-2^31 flat tiles); a 64-bit key keeps its sign bit 0 with the 31 bits of a positive float32 depth beside it."""
-
-
-def _check_key_bits(num_cameras: int, settings: _Settings) -> None:
-    tiles = num_cameras * settings.tiles_x * settings.tiles_y
-    if tiles >= 2**MAX_TILE_BITS:
-        raise InputError(
-            f"{num_cameras} cameras x {settings.tiles_x * settings.tiles_y} tiles do not fit the "
-            f"{MAX_TILE_BITS}-bit tile part of the sort key; render fewer cameras per call or use larger tiles"
-        )
-
-
+# --------------------------------------------------------------------------------------------------
+# Tile binning: sort keys, speculation, the host read and the sort (stage 4)
 class SortKey(NamedTuple):
     """How one call packs its intersection sort keys ``[flat tile | depth key]`` (computed on the device by
     :func:`codecsplat_warp.kernels.raster_tiles.sort_key_layout`).

@@ -15,7 +15,8 @@ import math
 
 import torch
 
-ALPHA_THRESHOLD = 1.0 / 255.0
+from ..kernels.raster_row import ALPHA_LEVELS, ALPHA_THRESHOLD
+
 MAX_ALPHA = 0.999
 MIN_TRANSMITTANCE = 1e-4
 """Default early-stop transmittance (gsplat's)."""
@@ -91,7 +92,8 @@ def project(means, quats, scales, opacities, viewmat, K, width, height, near, fa
         opacities = opacities * ratio / torch.sqrt(torch.clamp(ratio, min=1e-12))
     means2d = torch.stack([fx * x / safe_z + cx, fy * y / safe_z + cy], dim=-1)
     with torch.no_grad():
-        extent = torch.clamp(torch.sqrt(2 * torch.log(torch.clamp(opacities * 255, min=1.0))), max=MAX_EXTENT_SIGMAS)
+        extent = torch.sqrt(2 * torch.log(torch.clamp(opacities * ALPHA_LEVELS, min=1.0)))
+        extent = torch.clamp(extent, max=MAX_EXTENT_SIGMAS)
         diag = torch.stack([blurred[:, 0, 0], blurred[:, 1, 1]], dim=-1).clamp(min=0)
         radii = torch.ceil(extent[:, None] * torch.sqrt(diag))
         visible = (z > near) & (z < far) & (det > 0) & (opacities >= ALPHA_THRESHOLD) & (radii > 0).any(-1)
