@@ -226,8 +226,8 @@ def _cmd_encode(args) -> int:
     from .codec import bytes_report, check_lambda
     from .data import load_scene
     from .data.preprocess import DatasetConfig, preprocess_scene
-    from .evaluate import timed
     from .export.files import write_bytes
+    from .measure import timed
 
     device = _device(args)
     lam = check_lambda(args.lam)
@@ -289,8 +289,8 @@ def _cmd_decode(args) -> int:
     import torch
 
     from .data import load_scene
-    from .evaluate import timed
     from .export.ply import write_ply
+    from .measure import timed
     from .model.prune import prune_gaussians
 
     if args.cameras and not args.prune:
@@ -335,8 +335,8 @@ def _cmd_render(args) -> int:
     import torch
 
     from .data import load_scene
-    from .evaluate import timed
     from .export.video import MP4_MISSING, mp4_plugin, orbit_cameras, to_uint8_frames, write_frames
+    from .measure import timed
     from .model.prune import prune_gaussians
 
     if args.format == "mp4" and mp4_plugin() is None:

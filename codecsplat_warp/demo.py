@@ -30,10 +30,11 @@ from .data.procedural import ProceduralConfig, procedural_scene
 from .errors import InputError
 from .data import split_context_targets
 from .evaluate import (BACKBONE, COPY_NEAREST, Sample, format_bytes, nearest_context_images, plot_rate_distortion,
-                       pyplot, save_figure, timed)
+                       pyplot, save_figure)
 from .export.files import atomic_output, write_bytes, write_json
 from .export.ply import write_ply
 from .export.video import to_uint8_frames
+from .measure import timed
 from .metrics.image import ImageMetrics
 from .model.codecsplat import model_id
 from .model.prune import prune_gaussians

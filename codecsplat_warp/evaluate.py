@@ -47,7 +47,7 @@ from .errors import DataError, InputError
 from .export.files import atomic_output, write_json, write_text
 from .export.ply import decode_ply, encode_ply
 from .gaussians import Gaussians
-from .measure import format_table, machine_name
+from .measure import format_table, machine_name, synchronize, timed
 from .metrics.image import ImageMetrics
 from .model.codecsplat import model_id
 
@@ -218,20 +218,6 @@ def nearest_context_images(context_images: torch.Tensor, context_cameras: Camera
 
 # --------------------------------------------------------------------------------------------------
 # Running the methods
-def _synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def timed(fn: Callable[[], object], device: torch.device) -> tuple[object, float]:
-    """(fn(), wall seconds), CUDA work included."""
-    _synchronize(device)
-    start = time.perf_counter()
-    result = fn()
-    _synchronize(device)
-    return result, time.perf_counter() - start
-
-
 @contextlib.contextmanager
 def backbone_clock(model: torch.nn.Module, device: torch.device) -> Iterator[dict]:
     """Record in the yielded dict, under ``"features_done"``, the clock time when the backbone's last
@@ -240,7 +226,7 @@ def backbone_clock(model: torch.nn.Module, device: torch.device) -> Iterator[dic
     marks: dict[str, float] = {}
 
     def hook(*_):
-        _synchronize(device)
+        synchronize(device)
         marks["features_done"] = time.perf_counter()
 
     handle = model.refine_pre.register_forward_hook(hook)
@@ -330,10 +316,10 @@ class Evaluator:
 
     def _codecsplat(self, sample: Sample, lam: float) -> Row:
         with backbone_clock(self.model, self.device) as marks:
-            _synchronize(self.device)
+            synchronize(self.device)
             start = time.perf_counter()
             encoded = self.model.encode_scene(sample.context_images, sample.context_cameras, lam)
-            _synchronize(self.device)
+            synchronize(self.device)
             end = time.perf_counter()
         decoded, decompress_s = timed(lambda: self.model.decode_scene(encoded.data), self.device)
         return Row(sample.scene, CODECSPLAT, f"λ={lam:g}", len(encoded.data), self._score(decoded.gaussians, sample),

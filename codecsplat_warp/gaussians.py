@@ -1,6 +1,6 @@
 """3D Gaussians in world space, and the rotation (quaternion) and spherical-harmonics helpers they use.
 
-Shared by the network (:mod:`codecsplat_warp.model`, whose Eq. 10 map :func:`codecsplat_warp.model.heads.map_to_world`
+Shared by the network (:mod:`codecsplat_warp.model`, whose Eq. 12 map :func:`codecsplat_warp.model.heads.map_to_world`
 builds :class:`Gaussians` from pixel-aligned camera-space predictions), the codec's bitstream (camera
 rotations as quaternions), the exporters and the baselines.
 

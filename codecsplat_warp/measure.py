@@ -1,23 +1,74 @@
-"""Timing, memory, machine-name and table helpers shared by the benchmarks (``codecsplat bench ...``), the
-evaluation (``codecsplat eval``), the self-check and the training curves. Imports nothing of the package, so
+"""Timing, memory, machine-name and table helpers: the one place the package measures time. Used by the codec
+(its phase :data:`Timer`), the evaluation (``codecsplat eval``), the commands, the benchmarks (``codecsplat bench
+...``), the self-check and the training curves. Imports nothing of the package, so it sits in the lowest layer and
 every layer may use it.
 
-Timing follows the usual GPU method: warm-up runs first (Warp module load, allocator warm-up), then the
-median of repeated runs; on CUDA each run is bracketed by CUDA events on the current stream, on the CPU by
-``time.perf_counter``.
+Two ways of timing, one synchronisation rule (:func:`synchronize`: wait for the device's queued work, so that a
+time covers the CUDA work it launched):
+
+* one call, as a user waits for it: :func:`timed` (wall seconds) and, per named phase inside a call,
+  :class:`PhaseTimer` (the codec's ``timer(phase)`` hook, :data:`Timer`; :func:`no_timer` times nothing);
+* a benchmark: warm-up runs first (Warp module load, allocator warm-up), then the median of repeated runs
+  (:func:`time_call`, :func:`interleaved_medians`); on CUDA each run is bracketed by CUDA events on the current
+  stream, on the CPU by ``time.perf_counter``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import os
 import platform
 import statistics
 import time
 from dataclasses import dataclass
-from typing import Callable, Hashable, Sequence
+from typing import Callable, Hashable, Iterator, Sequence
 
 import torch
+
+Timer = Callable[[str], contextlib.AbstractContextManager]
+"""``timer(phase)`` returns a context manager that times that phase of a call (the codec's ``entropy`` and
+``bitstream`` phases in ``compress``/``decompress``, ``encode_scene``/``decode_scene``); the default,
+:func:`no_timer`, times nothing; :class:`PhaseTimer` sums seconds per phase."""
+
+
+def no_timer(_phase: str) -> contextlib.AbstractContextManager:
+    """The default :data:`Timer`: measures nothing."""
+    return contextlib.nullcontext()
+
+
+def synchronize(device: torch.device) -> None:
+    """Wait until ``device`` has finished its queued work (CUDA); nothing to wait for on the CPU."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def timed(fn: Callable[[], object], device: torch.device) -> tuple[object, float]:
+    """``(fn(), seconds)``: wall time of one call of ``fn``, the device work it queued included."""
+    synchronize(device)
+    start = time.perf_counter()
+    result = fn()
+    synchronize(device)
+    return result, time.perf_counter() - start
+
+
+class PhaseTimer:
+    """A :data:`Timer` that sums wall seconds per phase in :attr:`seconds` (``{phase: seconds}``), synchronising
+    ``device`` at each phase's start and end."""
+
+    def __init__(self, device: torch.device):
+        self.device = device
+        self.seconds: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def __call__(self, phase: str) -> Iterator[None]:
+        synchronize(self.device)
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            synchronize(self.device)
+            self.seconds[phase] = self.seconds.get(phase, 0.0) + time.perf_counter() - start
 
 
 @dataclass
@@ -35,8 +86,8 @@ def time_call(fn: Callable[[], object], device: torch.device, reps: int, warmup:
     for _ in range(warmup):
         fn()
     samples = []
+    synchronize(device)
     if device.type == "cuda":
-        torch.cuda.synchronize(device)
         for _ in range(reps):
             start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
             start.record()

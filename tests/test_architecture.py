@@ -1,5 +1,5 @@
-"""Architecture contracts (issue 19): the import-linter contracts in pyproject.toml hold, and a contract broken
-on purpose makes ``lint-imports`` fail (so CI would catch it).
+"""Architecture contracts (issue 19): the import-linter contracts in pyproject.toml hold, a contract broken
+on purpose makes ``lint-imports`` fail (so CI would catch it), and no import cycle exists (grimp's graph).
 
 The Warp kernels live in the top-level ``kernels/`` folder and ship as ``codecsplat_warp.kernels``
 (pyproject's package-dir mapping), which an editable install maps with an import hook that import-linter's
@@ -10,6 +10,7 @@ By hand: ``lint-imports`` in such a copy (see :func:`_installed_layout`).
 
 from __future__ import annotations
 
+import json
 import pathlib
 import shutil
 import subprocess
@@ -70,3 +71,25 @@ def test_a_contract_broken_on_purpose_fails(tmp_path, file, line, contract, chai
     assert f"{contract} BROKEN" in result.stdout and chain in result.stdout, result.stdout
     if not chain.endswith("torch"):
         assert "layers only point down BROKEN" in result.stdout, result.stdout
+
+
+def _import_cycles(tree: pathlib.Path) -> list[tuple[str, str]]:
+    """Pairs (a, b) of the package's modules where a imports b and b reaches a back through imports, counting
+    imports inside functions too (a lazy import that exists to dodge a cycle is still a cycle)."""
+    code = ("import grimp, json; g = grimp.build_graph('codecsplat_warp', 'train', cache_dir=None); "
+            "print(json.dumps(sorted({tuple(sorted((a, b))) for a in g.modules "
+            "for b in g.find_modules_directly_imported_by(a) if g.find_shortest_chain(importer=b, imported=a)})))")
+    result = subprocess.run([sys.executable, "-c", code], cwd=tree, capture_output=True, text=True,
+                            env={"PYTHONPATH": str(tree), "PATH": "/usr/bin:/bin"}, timeout=300)
+    assert result.returncode == 0, result.stderr
+    return [tuple(pair) for pair in json.loads(result.stdout)]
+
+
+def test_no_import_cycles(tmp_path):
+    """No cycle anywhere in the package; the lazy import data/dataset.py used to make (``from . import
+    load_scene`` inside a method, against ``data/__init__`` importing dataset) is found if put back."""
+    tree = _installed_layout(tmp_path)
+    assert _import_cycles(tree) == []
+    dataset = tree / "codecsplat_warp" / "data" / "dataset.py"
+    dataset.write_text(dataset.read_text() + "\n\ndef _lazy():\n    from . import load_scene  # noqa: F401\n")
+    assert _import_cycles(tree) == [("codecsplat_warp.data", "codecsplat_warp.data.dataset")]

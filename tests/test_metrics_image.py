@@ -30,6 +30,8 @@ def test_psnr_clips_the_prediction_to_the_unit_range():
     prediction = torch.cat([_grey(-0.5, (1, 3, 16, 16)), _grey(1.2, (1, 3, 16, 16))])
     values = psnr(prediction, target)
     assert math.isinf(values[0]) and values[1].item() == pytest.approx(20.0, abs=1e-5)
+    raw = psnr(prediction, target, clip=False)  # the raw values: errors 0.5 and 0.3
+    assert raw.tolist() == pytest.approx([-10 * math.log10(0.25), -10 * math.log10(0.09)], abs=1e-5)
 
 
 def test_ssim_identical_and_flat_offset_match_the_closed_form():

@@ -1,4 +1,4 @@
-"""Map 2D->3D (Eq. 10), rotations and SH rotation, against independent references (gsplat's torch SH, numpy)."""
+"""Map 2D->3D (Eq. 12), rotations and SH rotation, against independent references (gsplat's torch SH, numpy)."""
 
 from __future__ import annotations
 

@@ -149,7 +149,7 @@ def test_resumed_run_gives_the_same_next_step_loss_and_logs_coded_rate(tmp_path)
 
 @pytest.mark.slow
 def test_brief_codec_training_gives_more_bytes_and_less_distortion_at_higher_lambda():
-    """Eq. 12's rate-distortion trade-off on the codec alone (tiny, a fixed random backbone's F_c of two
+    """Eq. 16's rate-distortion trade-off on the codec alone (tiny, a fixed random backbone's F_c of two
     procedural scenes, feature MSE as the distortion, stage 2's lambda sampling and rate warm-up): after a
     brief training the high-lambda operating point codes more bytes and reconstructs the features better
     than the low-lambda one. About 15 s on an idle 2-core CPU (a few hundred steps are needed)."""

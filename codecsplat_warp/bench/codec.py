@@ -24,16 +24,13 @@ import hashlib
 import json
 import pathlib
 import statistics
-import time
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import torch
 
 from ..cameras import Cameras
-from ..codec.latent import no_timer
 from ..errors import DataError, InputError
-from ..measure import format_table, machine_name
+from ..measure import PhaseTimer, format_table, machine_name, no_timer, timed
 from ..model.codecsplat import CodecSplat, model_id
 from ..model.pretrained import load_pretrained
 from ..nn.config import get_preset
@@ -145,37 +142,10 @@ def make_inputs(shape: Shape, seed: int, device: torch.device) -> tuple[torch.Te
     return images.to(device), cameras.to(device)
 
 
-class PhaseTimer:
-    """A :data:`codecsplat_warp.codec.latent.Timer` that accumulates seconds per phase, synchronising the
-    device at each phase's start and end."""
-
-    def __init__(self, device: torch.device):
-        self.device = device
-        self.seconds: dict[str, float] = {}
-
-    def sync(self) -> None:
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-
-    @contextmanager
-    def __call__(self, phase: str):
-        self.sync()
-        start = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.sync()
-            self.seconds[phase] = self.seconds.get(phase, 0.0) + time.perf_counter() - start
-
-
 def _timed(fn, device: torch.device) -> dict[str, float]:
     """{total, entropy, bitstream, network} seconds of one call ``fn(timer)``."""
     timer = PhaseTimer(device)
-    timer.sync()
-    start = time.perf_counter()
-    fn(timer)
-    timer.sync()
-    total = time.perf_counter() - start
+    _, total = timed(lambda: fn(timer), device)
     phases = {"entropy": timer.seconds.get("entropy", 0.0), "bitstream": timer.seconds.get("bitstream", 0.0)}
     return {"total": total, **phases, "network": total - sum(phases.values())}
 

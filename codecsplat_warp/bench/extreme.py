@@ -189,7 +189,7 @@ DEPTH_HEAD_TO_POINTS = Op(
     run=lambda s, cameras: (unproject(depth_from_normalized(s, cameras.near, cameras.far), cameras),),
     reference=lambda s, cameras: (unproject_reference(depth_from_normalized(s, cameras.near, cameras.far), cameras),),
 )
-"""The decoder's path from the depth head's S to 3D points (Eq. 8, then unprojection)."""
+"""The decoder's path from the depth head's S to 3D points (Eq. 10, then unprojection)."""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -493,7 +493,7 @@ RASTER_F32 = (5e-5, 1e-3)
 GEOMETRY_F32 = (2e-5, 2e-4)
 """Bound of float32 bilinear reprojection and plane sweeps (measured up to 3e-6 and 5e-6)."""
 POINTWISE_F32 = (2e-6, 2e-6)
-"""Bound of float32 ops of a few flops per element (unprojection, Eq. 8): measured up to 2.3e-7, ~2 ulp."""
+"""Bound of float32 ops of a few flops per element (unprojection, Eq. 10): measured up to 2.3e-7, ~2 ulp."""
 BF16_GRADIENT = 1e-2
 """Gradients of bfloat16 inputs come back in bfloat16: up to half an ulp (2^-9 = 2e-3) of rounding per value."""
 
@@ -614,10 +614,10 @@ CASES: list[Case] = [
          error=InputError, match="depth holds 1 non-finite"),
     Case("unproject-inf-depth", UNPROJECT, lambda: with_value(unproject_problem(), "depth", math.inf),
          error=InputError, match="depth holds 1 non-finite"),
-    # ---------------------------------------------------------------------------------- depth heads (Eq. 8, 13)
+    # ---------------------------------------------------------------------------------- depth heads (Eq. 10, 18)
     _geometry("depth-head-at-near-and-far", DEPTH_HEAD_TO_POINTS,
               lambda: Problem({"s": _endpoints_s(*GRID)}, ("s",), {"cameras": make_rig(*_rig_args())}), POINTWISE_F32,
-              note="S = 0 and 1 exactly (depth = far and near) through Eq. 8 into unprojection"),
+              note="S = 0 and 1 exactly (depth = far and near) through Eq. 10 into unprojection"),
     _geometry("depth-from-normalized-near-almost-far", DEPTH_FROM_NORMALIZED,
               lambda: _s_problem(_endpoints_s(2, 8, 8), 1.0, 1.0 + 1e-6), POINTWISE_F32,
               note="near = 1, far = 1 + 1e-6 (float64 bounds, float32 S)"),
@@ -626,7 +626,7 @@ CASES: list[Case] = [
               note="near = 1e-3, far = 1e6 (nine decades of depth)"),
     _geometry("normalized-from-depth-near-almost-far", NORMALIZED_FROM_DEPTH, lambda: _depth_problem(1.0, 1.001),
               (1e-3, 1e-3),
-              note="Eq. 13 with f/n = 1.001: 1/D - 1/f cancels to 1e-3 of its operands, so float32 loses "
+              note="Eq. 18 with f/n = 1.001: 1/D - 1/f cancels to 1e-3 of its operands, so float32 loses "
                    "ulp/1e-3 = 6e-5 relative inherently (measured 5e-5)"),
     # ---------------------------------------------------------------------------------- reproject_average
     _geometry("reproject-all-sources-invalid", REPROJECT, lambda: reproject_problem(facing_away_rig(32, 24)),

@@ -21,7 +21,6 @@ kernels with the most GPU time per call for ours and gsplat's forward and forwar
 from __future__ import annotations
 
 import argparse
-import math
 import traceback
 from dataclasses import dataclass
 
@@ -32,6 +31,7 @@ from ..measure import (
     cuda_kernel_times, cuda_peak_bytes, format_table, interleaved_medians, machine_name, rss_peak_growth_bytes,
     time_call,
 )  # fmt: skip
+from ..metrics.image import psnr
 from ..ops.raster import GAUSSIAN_ARGUMENTS, rasterize
 from ..reference.raster import rasterize_dense
 from ..synthetic import make_rig, smooth_depth
@@ -213,7 +213,7 @@ def measure_workload(workload: Workload, device: torch.device, reps: int, scale:
         try:
             theirs = gsplat_forward(gsplat, scene)[..., :3]
             gsplat_forward_backward(gsplat, scene)
-            row["psnr_vs_gsplat_db"] = _psnr(rgb, theirs)
+            row["psnr_vs_gsplat_db"] = float(psnr(rgb.permute(0, 3, 1, 2), theirs.permute(0, 3, 1, 2), clip=False))
             calls.update(gsplat_fwd_ms=lambda: gsplat_forward(gsplat, scene),
                          gsplat_fwd_bwd_ms=lambda: gsplat_forward_backward(gsplat, scene))  # fmt: skip
         except Exception as exc:  # noqa: BLE001
@@ -281,11 +281,6 @@ def measure_reference(device: torch.device, reps: int) -> dict:
         row["error"] = f"{type(exc).__name__}: {exc}"
         traceback.print_exc()
     return row
-
-
-def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    mse = float(((a.double() - b.double()) ** 2).mean())
-    return math.inf if mse == 0 else 10 * math.log10(1.0 / mse)
 
 
 def _import_gsplat(device: torch.device) -> dict | None:

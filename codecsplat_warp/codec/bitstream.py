@@ -1,4 +1,4 @@
-"""The scene bitstream (paper Eq. 7): header, Deflate-compressed camera stream, one feature stream per view.
+"""The scene bitstream (paper Eq. 8): header, Deflate-compressed camera stream, one feature stream per view.
 
 Layout (little-endian, no padding or alignment anywhere)::
 
@@ -115,7 +115,7 @@ class Bitstream:
 # --------------------------------------------------------------------------------------------------
 # Writing
 def pack_bitstream(model_id: str, lam: float, cameras: Cameras, feature_streams: list[bytes]) -> bytes:
-    """Eq. 7: the bytes of a scene.
+    """Eq. 8: the bytes of a scene.
 
     Args:
         model_id: 16 hex digits (see :func:`codecsplat_warp.model.pretrained.model_id`).

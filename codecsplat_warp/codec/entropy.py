@@ -1,7 +1,7 @@
 """The discrete entropy model of the latents and the range coder (``constriction``) that uses it.
 
 Every latent element is coded as an integer *residual symbol* ``s = round(z - m)`` under a zero-mean
-discretised Gaussian of scale ``sigma`` (paper Eq. 6), where the prior's mean and scale come from the
+discretised Gaussian of scale ``sigma`` (paper Eq. 7), where the prior's mean and scale come from the
 network. Encoder and decoder must use bit-identically the same discrete model, so the network's outputs
 are quantised before use:
 
@@ -94,7 +94,7 @@ def quantize_mean(mean: torch.Tensor) -> torch.Tensor:
 
 
 def gaussian_bits(residual: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
-    """Eq. 6 per element: ``-log2 P(residual)`` under a zero-mean Gaussian of ``scale`` integrated over
+    """Eq. 7 per element: ``-log2 P(residual)`` under a zero-mean Gaussian of ``scale`` integrated over
     ``[residual - 0.5, residual + 0.5]`` (float32 at least; the symmetric form keeps the tails accurate)."""
     dtype = torch.promote_types(residual.dtype, torch.float32)
     r, s = residual.to(dtype).abs(), scale.to(dtype)

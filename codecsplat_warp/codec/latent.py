@@ -46,7 +46,6 @@ symbols' models and run in the model's dtype (bf16 autocast on CUDA is fine).
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import math
 from dataclasses import dataclass
@@ -58,6 +57,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..errors import InputError
+from ..measure import Timer, no_timer
 from ..nn.config import ModelConfig
 from ..nn.layers import conv3x3
 from . import entropy
@@ -67,15 +67,6 @@ LAMBDA_MIN = 16.0
 
 LAMBDA_MAX = 1024.0
 """Largest lambda (highest rate); the stage-2 loss weighs distortion by lambda / LAMBDA_MAX."""
-
-Timer = Callable[[str], contextlib.AbstractContextManager]
-"""``timer(phase)`` returns a context manager timing that phase (benchmarks); the default times nothing."""
-
-
-def no_timer(_phase: str) -> contextlib.AbstractContextManager:
-    """The default :data:`Timer`: measures nothing."""
-    return contextlib.nullcontext()
-
 
 def check_lambda(lam: float) -> float:
     """``lam`` as a float; InputError unless it is finite and in [LAMBDA_MIN, LAMBDA_MAX]."""

@@ -41,7 +41,7 @@ class EncodedScene:
         data: the self-contained scene bitstream.
         feature_bytes: range-coded payload bytes of each view's feature stream (framing excluded).
         latents: per latent level (coarsest first), the coded residual symbols int64 [V,C_l,h_l,w_l] (CPU).
-        estimated_bits: [V] ideal code length of each view's latents under the discrete model (Eq. 6).
+        estimated_bits: [V] ideal code length of each view's latents under the discrete model (Eq. 7).
     """
 
     data: bytes

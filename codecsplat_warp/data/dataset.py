@@ -31,6 +31,7 @@ from tqdm.auto import tqdm
 from ..cameras import Cameras
 from ..errors import DataError
 from .chunks import load_index, read_chunk
+from .formats import load_scene
 from .preprocess import DatasetConfig, dataset_config, protocol_cameras, resize_and_crop
 from .procedural import ProceduralConfig, procedural_scene
 from .scene import Scene
@@ -115,8 +116,6 @@ class SceneDataset(Dataset):
     @classmethod
     def from_folders(cls, folders: Sequence, progress: bool = True, **kwargs) -> "SceneDataset":
         """Dataset of scene folders read with :func:`~codecsplat_warp.data.load_scene` (scanned once for view counts)."""
-        from . import load_scene
-
         refs = []
         for folder in tqdm(list(folders), desc="scanning scenes", unit="scene", disable=not progress):
             scene = load_scene(folder)

@@ -1,7 +1,8 @@
 """Full-reference image metrics of the paper's tables: PSNR, SSIM and LPIPS (VGG and AlexNet).
 
 * **PSNR** (dB) of the prediction clipped to [0, 1] against the target: ``-10 log10(MSE)`` per image
-  (identical images give +inf).
+  (identical images give +inf); the one PSNR of the package, also of the training logs and the benchmarks
+  (``clip=False`` for raw values).
 * **SSIM** (Wang et al. 2004) with an 11x11 Gaussian window (sigma 1.5), data range 1, C1 = (0.01)^2,
   C2 = (0.03)^2, population (not sample) statistics, averaged over the valid (unpadded) region and the
   three channels: the setting of scikit-image's ``structural_similarity(win_size=11, gaussian_weights=True,
@@ -39,10 +40,17 @@ def _check_pair(prediction: torch.Tensor, target: torch.Tensor) -> tuple[torch.T
     return prediction.double(), target.double()
 
 
-def psnr(prediction: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """PSNR in dB [B] of ``prediction`` clipped to [0, 1] against ``target`` (both [B,3,H,W])."""
+def psnr(prediction: torch.Tensor, target: torch.Tensor, clip: bool = True) -> torch.Tensor:
+    """PSNR in dB [B] float64 of ``prediction`` against ``target`` (both [B,3,H,W], peak value 1).
+
+    ``clip`` (the paper's metric, training logs included) clips the prediction to [0, 1] first, as an image
+    written to disk would be; ``clip=False`` compares the raw values (two renderers' outputs, which may
+    leave [0, 1]). Identical images give +inf.
+    """
     prediction, target = _check_pair(prediction, target)
-    mse = ((prediction.clamp(0.0, 1.0) - target) ** 2).mean(dim=(1, 2, 3))
+    if clip:
+        prediction = prediction.clamp(0.0, 1.0)
+    mse = ((prediction - target) ** 2).mean(dim=(1, 2, 3))
     return -10.0 * torch.log10(mse)
 
 
