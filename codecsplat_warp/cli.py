@@ -69,7 +69,8 @@ def _number_list(kind, text: str, what: str) -> list:
 
 def build_parser() -> argparse.ArgumentParser:
     from .demo import DEMO_LAMBDAS, DEMO_SEED, DEMO_TARGET_VIEWS
-    from .evaluate import BASELINE_NAMES, PAPER_LAMBDAS, PROTOCOLS
+    from .eval.evaluate import BASELINE_NAMES, PAPER_LAMBDAS
+    from .eval.protocols import PROTOCOLS
     from .export.video import FORMATS
 
     parser = _Parser(prog="codecsplat", description="CodecSplat on NVIDIA Warp: KB-level feed-forward 3D Gaussian "
@@ -197,7 +198,7 @@ def _parts_table(parts: dict[str, int]) -> list[str]:
 # Commands
 def _cmd_demo(args) -> int:
     from .demo import DemoConfig, run_demo
-    from .evaluate import format_bytes
+    from .eval.report import format_bytes
 
     device = _device(args)
     model = _load_model(args, device)
@@ -226,7 +227,7 @@ def _cmd_encode(args) -> int:
     from .codec import bytes_report, check_lambda
     from .data import load_scene
     from .data.preprocess import DatasetConfig, preprocess_scene
-    from .evaluate import timed
+    from .eval.evaluate import timed
     from .export.files import write_bytes
 
     device = _device(args)
@@ -289,7 +290,7 @@ def _cmd_decode(args) -> int:
     import torch
 
     from .data import load_scene
-    from .evaluate import timed
+    from .eval.evaluate import timed
     from .export.ply import write_ply
     from .model.prune import prune_gaussians
 
@@ -335,7 +336,7 @@ def _cmd_render(args) -> int:
     import torch
 
     from .data import load_scene
-    from .evaluate import timed
+    from .eval.evaluate import timed
     from .export.video import MP4_MISSING, mp4_plugin, orbit_cameras, to_uint8_frames, write_frames
     from .model.prune import prune_gaussians
 
@@ -378,7 +379,7 @@ def _cmd_render(args) -> int:
 
 
 def _cmd_eval(args) -> int:
-    from .evaluate import BASELINE_NAMES, EvalConfig, evaluate
+    from .eval.evaluate import BASELINE_NAMES, EvalConfig, evaluate
 
     baselines = () if args.baselines.strip().lower() == "none" else tuple(
         b.strip() for b in args.baselines.split(",") if b.strip())

@@ -32,188 +32,30 @@ import contextlib
 import pathlib
 import statistics
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Callable, Iterator
 
 import torch
 from tqdm.auto import tqdm
 
-from .baselines import FeatureDeflate, PlyDeflate, PngCompression
-from .cameras import Cameras
-from .codec import bytes_report, check_lambda
-from .data import detect_formats, load_evaluation_index, load_scene, split_context_targets
-from .data.preprocess import DatasetConfig, preprocess_scene
-from .errors import DataError, InputError
-from .export.files import atomic_output, write_json, write_text
-from .export.ply import decode_ply, encode_ply
-from .gaussians import Gaussians
-from .measure import format_table, machine_name
-from .metrics.image import ImageMetrics
-from .model.codecsplat import model_id
+from ..baselines import FeatureDeflate, PlyDeflate, PngCompression
+from ..codec import bytes_report, check_lambda
+from ..errors import DataError, InputError
+from ..export.files import write_json, write_text
+from ..export.ply import decode_ply, encode_ply
+from ..gaussians import Gaussians
+from ..measure import machine_name
+from ..metrics.image import ImageMetrics
+from ..model.codecsplat import model_id
+from .protocols import (PROTOCOLS, Protocol, Sample, find_scenes, index_samples, nearest_context_images, scene_samples,
+                        select_scenes)
+from .report import (BACKBONE, CODECSPLAT, COPY_NEAREST, Row, markdown_report, plot_distortion_vs_time,
+                     plot_rate_distortion, summarize, table1, table2)
 
-CODECSPLAT = "CodecSplat"
-BACKBONE = "CodecSplat w/o codec"
-COPY_NEAREST = "Copy nearest context view"
 BASELINE_NAMES = ("ply", "png", "feature")
 """Baselines ``--baselines`` may name: (a) PLY + Deflate, (b) PNG, (c) float16 feature + Deflate."""
 
 PAPER_LAMBDAS = (16.0, 32.0, 64.0, 128.0, 256.0, 512.0, 1024.0)
-
-
-@dataclass(frozen=True)
-class Protocol:
-    """Image size and view counts of an evaluation protocol.
-
-    Attributes:
-        name: ``re10k``, ``dl3dv`` or ``scene``.
-        width, height: protocol image size (resize to cover, centre-crop); None keeps each scene's stored
-            size, cropped to multiples of 4.
-        context_views: context views per sample; None uses the model's ``num_views``.
-        target_views: target views rendered and scored per sample.
-    """
-
-    name: str
-    width: int | None
-    height: int | None
-    context_views: int | None
-    target_views: int = 3
-
-
-PROTOCOLS = {
-    "re10k": Protocol("re10k", 256, 256, 2),
-    "dl3dv": Protocol("dl3dv", 448, 256, 8),
-    "scene": Protocol("scene", None, None, None),
-}
-"""RE10K: 2 views at 256x256; DL3DV: 8 views at 256x448 (HxW); scene: stored size, the model's view count."""
-
-
-@dataclass
-class Sample:
-    """One evaluation item: context and target views of a scene, images float32 [V,3,H,W] in [0,1]."""
-
-    scene: str
-    context: list[int]
-    target: list[int]
-    context_images: torch.Tensor
-    context_cameras: Cameras
-    target_images: torch.Tensor
-    target_cameras: Cameras
-
-    def to(self, device: torch.device) -> "Sample":
-        return Sample(self.scene, self.context, self.target, self.context_images.to(device),
-                      self.context_cameras.to(device), self.target_images.to(device), self.target_cameras.to(device))
-
-
-@dataclass
-class Row:
-    """One method on one sample: bytes, quality of the target renders, seconds."""
-
-    scene: str
-    method: str
-    setting: str
-    bytes: int
-    metrics: dict[str, float]
-    gen_s: float
-    compress_s: float
-    decompress_s: float
-    lam: float | None = None
-    parts: dict[str, int] = field(default_factory=dict)
-
-
-# --------------------------------------------------------------------------------------------------
-# Samples
-def find_scenes(path) -> list[pathlib.Path]:
-    """``path`` itself when it is a scene folder or pose file, else its sub-folders that hold a scene.
-
-    Raises:
-        DataError: ``path`` does not exist or holds no scene.
-    """
-    path = pathlib.Path(path)
-    if not path.exists():
-        raise DataError(f"{path} does not exist")
-    if path.is_file() or detect_formats(path):
-        return [path]
-    scenes = sorted(p for p in path.iterdir() if p.is_dir() and detect_formats(p))
-    if not scenes:
-        raise DataError(f"{path} is neither a scene nor a folder of scenes (no pose file found)")
-    return scenes
-
-
-def select_scenes(paths: list[pathlib.Path], names: tuple[str, ...]) -> list[pathlib.Path]:
-    """The ``paths`` whose folder name is in ``names``, in the order of ``names`` (all paths when it is empty).
-
-    Raises:
-        DataError: a name matches no path (the error lists the scenes found).
-    """
-    if not names:
-        return paths
-    by_name = {p.name: p for p in paths}
-    missing = sorted(set(names) - set(by_name))
-    if missing:
-        raise DataError(f"scene(s) {', '.join(missing)} not found; found {', '.join(by_name)}")
-    return [by_name[name] for name in names]
-
-
-def scene_samples(path: pathlib.Path, protocol: Protocol, context_views: int, samples: int) -> list[Sample]:
-    """``samples`` items of one scene, anchors evenly spread over its views, preprocessed to the protocol.
-
-    The scene keeps its own near/far (real captures are not in the RE10K/DL3DV scale).
-    """
-    scene = load_scene(path)
-    V = scene.num_views
-    out = []
-    for s in range(samples):
-        anchor = min(V - 1, int((s + 0.5) * V / samples))
-        context, target = split_context_targets(scene.cameras, anchor, context_views, protocol.target_views)
-        out.append(protocol_sample(path.name, scene, protocol, context, target))
-    return out
-
-
-def index_samples(paths: list[pathlib.Path], index_file, protocol: Protocol) -> list[Sample]:
-    """One item per entry of an evaluation index file (``{"<scene folder>": {"context": [...], "target":
-    [...]}}``, see :func:`codecsplat_warp.data.load_evaluation_index`) among the scene folders ``paths``,
-    preprocessed to the protocol, in the index's order.
-
-    Raises:
-        DataError: an entry names no scene folder of ``paths``, or a frame the scene does not have.
-    """
-    selections = load_evaluation_index(index_file)
-    by_name = {p.name: p for p in paths}
-    missing = [key for key in selections if key not in by_name]
-    if missing:
-        raise DataError(f"{index_file}: scene(s) {', '.join(missing)} are not in the data "
-                        f"(found {', '.join(by_name) or 'none'})")
-    out = []
-    for key, selection in selections.items():
-        scene = load_scene(by_name[key])
-        frames = selection.context + selection.target
-        if max(frames) >= scene.num_views:
-            raise DataError(f"{index_file}: scene {key} has {scene.num_views} views, the index asks for frame "
-                            f"{max(frames)}")
-        out.append(protocol_sample(key, scene, protocol, list(selection.context), list(selection.target)))
-    return out
-
-
-def protocol_sample(name: str, scene, protocol: Protocol, context: list[int], target: list[int]) -> Sample:
-    """The context and target frames of ``scene`` resized and centre-cropped to the protocol size (the stored
-    size cropped to multiples of 4 when the protocol has none), keeping the scene's near/far."""
-    width = protocol.width or scene.cameras.width // 4 * 4
-    height = protocol.height or scene.cameras.height // 4 * 4
-    frames = preprocess_scene(scene, DatasetConfig(width=width, height=height, near=0.0, far=0.0),
-                              frames=context + target, use_config_depth_range=False)
-    pixels = frames.images.float() / 255.0
-    cameras = frames.cameras.to(dtype=torch.float32)
-    n = len(context)
-    return Sample(name, context, target, pixels[:n], cameras.select(list(range(n))), pixels[n:],
-                  cameras.select(list(range(n, n + len(target)))))
-
-
-def nearest_context_images(context_images: torch.Tensor, context_cameras: Cameras,
-                           target_cameras: Cameras) -> torch.Tensor:
-    """[T,3,H,W]: for each target camera, the context image [V,3,H,W] whose camera centre is nearest to its own
-    (the "copy the nearest context view" prediction)."""
-    distance = torch.cdist(target_cameras.centers.double(), context_cameras.centers.double())
-    return context_images[distance.argmin(dim=1)]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -361,130 +203,6 @@ class Evaluator:
                    gen_s, compress_s, decompress_s)
 
 
-# --------------------------------------------------------------------------------------------------
-# Summaries, tables, plots
-def summarize(rows: list[Row]) -> list[dict]:
-    """Mean over samples of every (method, setting), in first-appearance order."""
-    groups: dict[tuple[str, str], list[Row]] = {}
-    for row in rows:
-        groups.setdefault((row.method, row.setting), []).append(row)
-    summary = []
-    for (method, setting), group in groups.items():
-        entry = {"method": method, "setting": setting, "lam": group[0].lam, "samples": len(group),
-                 "bytes": statistics.fmean(r.bytes for r in group)}
-        for name in group[0].metrics:
-            entry[name] = statistics.fmean(r.metrics[name] for r in group)
-        for key in ("gen_s", "compress_s", "decompress_s"):
-            entry[key] = statistics.fmean(getattr(r, key) for r in group)
-        summary.append(entry)
-    return summary
-
-
-def format_bytes(count: float) -> str:
-    """Bytes as the paper prints them: KiB below 1 MiB, MiB above."""
-    return f"{count / 2**20:.2f} MiB" if count >= 2**20 else f"{count / 2**10:.2f} KiB"
-
-
-TABLE1_COLUMNS = [("method", "Method", "s"), ("setting", "Codec Setting", "s"), ("bytes_text", "Bytes/scene ↓", "s"),
-                  ("psnr", "PSNR ↑", ".2f"), ("ssim", "SSIM ↑", ".3f"), ("lpips_vgg", "LPIPS-VGG ↓", ".3f"),
-                  ("lpips_alex", "LPIPS-Alex ↓", ".3f")]
-TABLE2_COLUMNS = [("method", "Method", "s"), ("setting", "Codec Setting", "s"), ("gen_s", "GS Gen. T. ↓", ".3f"),
-                  ("compress_s", "Compress T. ↓", ".3f"), ("decompress_s", "Decompress T. ↓", ".3f")]
-
-
-def table1(summary: list[dict]) -> str:
-    """Table 1 (and 4): bytes per scene and target-view quality of every method (n/a: LPIPS without weights)."""
-    return format_table([{**s, "bytes_text": format_bytes(s["bytes"])} for s in _paper_order(summary)], TABLE1_COLUMNS)
-
-
-def table2(summary: list[dict]) -> str:
-    """Table 2: GS generation, compression and decompression seconds; CodecSplat averaged over its lambdas."""
-    rows = [s for s in _paper_order(summary) if s["method"] not in (CODECSPLAT, COPY_NEAREST)]
-    codec = [s for s in summary if s["method"] == CODECSPLAT]
-    if codec:
-        lams = sorted(s["lam"] for s in codec)
-        setting = f"λ={lams[0]:g}" if len(lams) == 1 else f"λ={lams[0]:g},…,{lams[-1]:g}"
-        mean = {k: statistics.fmean(s[k] for s in codec) for k in ("gen_s", "compress_s", "decompress_s")}
-        rows.append({"method": CODECSPLAT, "setting": setting, **mean})
-    return format_table(rows, TABLE2_COLUMNS)
-
-
-def _paper_order(summary: list[dict]) -> list[dict]:
-    """Baselines and the reference first, CodecSplat rows (by lambda) last, as in the paper."""
-    return [s for s in summary if s["method"] != CODECSPLAT] + sorted(
-        (s for s in summary if s["method"] == CODECSPLAT), key=lambda s: s["lam"])
-
-
-def plot_rate_distortion(summary: list[dict], path: pathlib.Path) -> None:
-    """Quality against bytes per scene (log scale): CodecSplat's lambda curve, baselines as points."""
-    names = [n for n in ("psnr", "ssim", "lpips_alex") if n in summary[0]]
-    labels = {"psnr": "PSNR (dB) ↑", "ssim": "SSIM ↑", "lpips_alex": "LPIPS-Alex ↓"}
-    fig, axes = _figure(len(names))
-    for ax, name in zip(axes, names):
-        _plot_methods(ax, summary, x=lambda s: s["bytes"] / 1024, y=lambda s, n=name: s[n], connect=True)
-        ax.set_xlabel("KiB per scene")
-        ax.set_ylabel(labels[name])
-    _save(fig, axes, path)
-
-
-def plot_distortion_vs_time(summary: list[dict], path: pathlib.Path) -> None:
-    """PSNR against encoder (GS generation + compression) and decoder seconds, log scale."""
-    fig, axes = _figure(2)
-    for ax, (label, x) in zip(axes, (("encode s (GS gen. + compress)", lambda s: s["gen_s"] + s["compress_s"]),
-                                      ("decompress s", lambda s: s["decompress_s"]))):
-        _plot_methods(ax, summary, x=x, y=lambda s: s["psnr"], connect=False)
-        ax.set_xlabel(label)
-        ax.set_ylabel("PSNR (dB) ↑")
-    _save(fig, axes, path)
-
-
-def pyplot():
-    """matplotlib.pyplot on the non-interactive Agg backend (no display needed)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _figure(panels: int):
-    fig, axes = pyplot().subplots(1, panels, figsize=(5.2 * panels, 4.2), squeeze=False)
-    return fig, list(axes[0])
-
-
-def _plot_methods(ax, summary: list[dict], x: Callable, y: Callable, connect: bool) -> None:
-    """CodecSplat's operating points (joined in lambda order when ``connect``) and one marker per other method,
-    on a log x axis; the copy-nearest floor (no bytes, no time) as a dashed horizontal line."""
-    codec = sorted((s for s in summary if s["method"] == CODECSPLAT), key=lambda s: s["lam"])
-    if codec:
-        ax.plot([x(s) for s in codec], [y(s) for s in codec], "o-" if connect else "o", color="C3", label=CODECSPLAT,
-                zorder=3)
-        for s in codec:
-            ax.annotate(f"λ={s['lam']:g}", (x(s), y(s)), textcoords="offset points", xytext=(4, -10), fontsize=7)
-    styles = zip("sD^vP*X", ("C0", "C1", "C2", "C4", "C5", "C6", "C7"))
-    for s, (marker, colour) in zip((s for s in summary if s["method"] not in (CODECSPLAT, COPY_NEAREST)), styles):
-        ax.plot([x(s)], [y(s)], marker, color=colour, label=f"{s['method']} ({s['setting']})")
-    for s in summary:
-        if s["method"] == COPY_NEAREST:
-            ax.axhline(y(s), color="0.4", ls="--", lw=1, label=f"{COPY_NEAREST} (0 bytes)")
-    ax.set_xscale("log")
-    ax.xaxis.set_minor_formatter(pyplot().NullFormatter())
-    ax.grid(True, which="both", alpha=0.3)
-
-
-def _save(fig, axes, path: pathlib.Path) -> None:
-    axes[0].legend(fontsize=7, loc="best")
-    save_figure(fig, path)
-
-
-def save_figure(fig, path: pathlib.Path) -> None:
-    """Write a matplotlib figure as PNG (atomically) and close it."""
-    fig.tight_layout()
-    with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=130)
-    pyplot().close(fig)
-
 
 # --------------------------------------------------------------------------------------------------
 # Entry point
@@ -575,30 +293,6 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
     plot_distortion_vs_time(summary, files["distortion_vs_time"])
     return result
 
-
-def markdown_report(result: dict) -> str:
-    """The Markdown file: what was run, then Tables 1 and 2."""
-    protocol = result["config"]["protocol"]
-    size = f"{protocol['height']}x{protocol['width']}" if protocol["width"] else "stored size"
-    lines = [
-        f"# codecsplat eval: {protocol['name']} protocol",
-        "",
-        f"{len(result['scenes'])} scene(s), {result['config']['samples_per_scene']} sample(s) each; "
-        f"{protocol['context_views'] or 'model'} context view(s) at {size} (HxW), {protocol['target_views']} target "
-        f"view(s) per sample. Device: {result['machine']}. Model {result['model_id']}. LPIPS: {result['lpips']}.",
-        "",
-        "## Table 1: bytes per scene and target-view quality",
-        "",
-        result["tables"]["table1"],
-        "",
-        "## Table 2: timing (seconds)",
-        "",
-        result["tables"]["table2"],
-        "",
-    ]
-    if result["skipped"]:
-        lines += ["Skipped: " + "; ".join(f"{s['scene']} ({s['reason']})" for s in result["skipped"]), ""]
-    return "\n".join(lines)
 
 
 def _protocol(config: EvalConfig) -> Protocol:
