@@ -1,7 +1,8 @@
-"""``codecsplat eval``: the paper's evaluation (Tables 1, 2 and 4) on a folder of scenes.
+"""``codecsplat eval``: the paper's evaluation (Tables 1, 2 and 4) on scene folders or RE10K/ACID/DL3DV chunks.
 
-For every scene sample (context views -> target views: from an evaluation index file with ``index``, else
-picked by :func:`codecsplat_warp.data.split_context_targets` around evenly spread anchors):
+For every scene sample (context views -> target views: from an evaluation index file with ``index``, which a
+chunk folder needs, else picked by :func:`codecsplat_warp.data.split_context_targets` around evenly spread
+anchors; see :mod:`codecsplat_warp.eval.protocols`):
 
 * **CodecSplat** at each lambda: ``model.encode_scene`` -> bitstream -> ``model.decode_scene`` -> render the
   targets. Bytes are the whole bitstream (header, cameras, feature streams).
@@ -22,17 +23,18 @@ the rest of the encoder (CodecSplat: latent analysis, entropy coding, bitstream)
 encoder; *decompress* is bytes -> Gaussians on the device. A warm-up pass on the first sample (Warp
 kernel loading, allocator) is not timed.
 
-Outputs (``--out``): ``results.json`` (every sample and the summary), ``tables.md`` (Tables 1 and 2 in
+Outputs (``--out``): ``results.json`` (every sample and the summary; a rerun resumes from it), ``tables.md`` (Tables 1 and 2 in
 the paper's form), ``rate_distortion.png`` and ``distortion_vs_time.png``.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import pathlib
 import statistics
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Callable, Iterator
 
 import torch
@@ -47,8 +49,8 @@ from ..gaussians import Gaussians
 from ..measure import machine_name
 from ..metrics.image import ImageMetrics
 from ..model.codecsplat import model_id
-from .protocols import (PROTOCOLS, Protocol, Sample, find_scenes, index_samples, nearest_context_images, scene_samples,
-                        select_scenes)
+from .protocols import (PROTOCOLS, Protocol, Sample, SamplePlan, chunk_plan, eager_plan, find_scenes, folder_index_plan,
+                        is_chunk_folder, nearest_context_images, scene_samples, select_scenes)
 from .report import (BACKBONE, CODECSPLAT, COPY_NEAREST, Row, markdown_report, plot_distortion_vs_time,
                      plot_rate_distortion, summarize, table1, table2)
 
@@ -203,7 +205,6 @@ class Evaluator:
                    gen_s, compress_s, decompress_s)
 
 
-
 # --------------------------------------------------------------------------------------------------
 # Entry point
 @dataclass
@@ -211,6 +212,7 @@ class EvalConfig:
     """Options of ``codecsplat eval`` (see :func:`evaluate`)."""
 
     data: str
+    """A scene folder, a folder of scene folders, or a chunk folder (``index.json`` + ``*.torch``, needs ``index``)."""
     out: str = "codecsplat-eval"
     protocol: str = "re10k"
     lambdas: tuple[float, ...] = PAPER_LAMBDAS
@@ -222,22 +224,36 @@ class EvalConfig:
     kmeans_iterations: int = 10
     progress: bool = True
     scenes: tuple[str, ...] = ()
-    """Scene folder names to keep (e.g. the held-out ones); empty keeps every scene under ``data``."""
+    """Scene folder names (or chunk scene keys) to keep; empty keeps every scene under ``data``."""
     index: str | None = None
     """Evaluation index file: the scenes and their context/target frames (``samples_per_scene`` unused)."""
+    size: tuple[int, int] | None = None
+    """(width, height) in pixels, each a multiple of 4, instead of the protocol's (its depth range and views stay)."""
+    resume: bool = True
+    """Keep the samples an earlier run of the same evaluation finished in ``out/results.json`` (False: start over)."""
+
+
+RUN_SETTINGS = ("out", "progress", "resume")
+"""EvalConfig fields that do not change the results: a run may resume another that differs only in these."""
 
 
 def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
-    """Evaluate ``model`` on every scene of ``config.data``; write results.json, tables.md and the plots.
+    """Evaluate ``model`` on every sample of ``config.data``; write results.json, tables.md and the plots.
 
     Scenes with too few views for the protocol are skipped and listed under ``skipped``. results.json is
-    rewritten after every sample (``samples_done`` of ``samples_total``), so an interrupted run keeps its rows.
+    rewritten after every sample (``samples_done`` of ``samples_total``, and the ``plan``: every sample's scene,
+    context and target frames), so an interrupted run keeps its rows; run again with the same options it
+    resumes after the last finished sample (its rows, timings included, are kept as measured then). A chunk
+    folder is streamed one chunk at a time (:func:`~codecsplat_warp.eval.protocols.chunk_plan`).
 
     Returns:
-        {"config", "device", "machine", "model_id", "scenes", "skipped", "lpips", "files", "samples_done",
+        {"config", "device", "machine", "model_id", "scenes", "skipped", "lpips", "files", "plan", "samples_done",
         "samples_total", "summary", "rows", "tables"}.
     Raises:
-        InputError: unknown protocol or baseline, empty lambda list; DataError: no usable scene.
+        InputError: unknown protocol or baseline, empty lambda list, bad size, a chunk folder without an index
+            or with the ``scene`` protocol.
+        DataError: no usable scene; an index naming scenes or frames the data does not have; results.json of
+            another evaluation in ``out`` (with ``resume``).
     """
     protocol = _protocol(config)
     unknown = sorted(set(config.baselines) - set(BASELINE_NAMES))
@@ -249,20 +265,10 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
         check_lambda(lam)
     png = PngCompression(sh_clusters=config.png_sh_clusters, kmeans_iterations=config.kmeans_iterations)
     metrics = ImageMetrics(config.lpips_weights, device)
-    samples, skipped = [], []
-    paths = select_scenes(find_scenes(config.data), tuple(sorted(config.scenes)))
-    if config.index:
-        samples = index_samples(paths, config.index, protocol)
-    else:
-        for path in paths:
-            try:
-                samples += scene_samples(path, protocol, protocol.context_views or model.config.num_views,
-                                         config.samples_per_scene)
-            except DataError as exc:
-                skipped.append({"scene": path.name, "reason": str(exc)})
-    if not samples:
+    plan = _plan(config, protocol, model)
+    if not plan.keys:
         raise DataError(f"no scene under {config.data} is usable with the {protocol.name} protocol: "
-                        + "; ".join(f"{s['scene']}: {s['reason']}" for s in skipped))
+                        + ("; ".join(f"{s['scene']}: {s['reason']}" for s in plan.skipped) or "the index selects none"))
     evaluator = Evaluator(model, metrics, config.lambdas, config.baselines, device, png)
     out = pathlib.Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -270,22 +276,24 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
              "distortion_vs_time": out / "distortion_vs_time.png"}
     header = {
         "config": {**asdict(config), "protocol": asdict(protocol)}, "device": str(device),
-        "machine": machine_name(device), "model_id": model_id(model), "scenes": sorted({s.scene for s in samples}),
-        "skipped": skipped, "lpips": metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1",
-        "files": {k: str(v) for k, v in files.items()},
+        "machine": machine_name(device), "model_id": model_id(model), "scenes": sorted({k[0] for k in plan.keys}),
+        "skipped": plan.skipped, "lpips": metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1",
+        "files": {k: str(v) for k, v in files.items()}, "plan": [[s, list(c), list(t)] for s, c, t in plan.keys],
     }
-    evaluator.warm_up(samples[0])
-    rows: list[Row] = []
-    with tqdm(total=len(samples) * evaluator.steps_per_sample, desc="eval", unit="method",
+    rows, start = _finished(files["json"], header) if config.resume else ([], 0)
+    total = len(plan.keys)
+    with tqdm(total=(total - start) * evaluator.steps_per_sample, desc="eval", unit="method",
               disable=None if config.progress else True) as progress:  # None: only on a terminal
-        for done, sample in enumerate(samples, 1):
+        for done, sample in enumerate(plan.load(start), start + 1):
+            if done == start + 1:
+                evaluator.warm_up(sample)
             progress.set_postfix_str(sample.scene)
             rows += evaluator.run(sample, progress)
             # after every sample, so an interrupted run keeps what it measured
-            write_json(files["json"], {**header, "samples_done": done, "samples_total": len(samples),
+            write_json(files["json"], {**header, "samples_done": done, "samples_total": total,
                                        "summary": summarize(rows), "rows": [asdict(r) for r in rows]})
     summary = summarize(rows)
-    result = {**header, "samples_done": len(samples), "samples_total": len(samples), "summary": summary,
+    result = {**header, "samples_done": total, "samples_total": total, "summary": summary,
               "rows": [asdict(r) for r in rows], "tables": {"table1": table1(summary), "table2": table2(summary)}}
     write_json(files["json"], result)
     write_text(files["markdown"], markdown_report(result))
@@ -294,15 +302,76 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
     return result
 
 
+def _plan(config: EvalConfig, protocol: Protocol, model) -> SamplePlan:
+    """The samples of ``config.data``: an index's entries (chunks streamed, scene folders loaded when due), or
+    ``samples_per_scene`` nearest-view splits of every scene folder (loaded at once, unusable ones skipped)."""
+    if is_chunk_folder(config.data):
+        if not config.index:
+            raise InputError(f"{config.data} is a chunk folder: give the evaluation index of its scenes with --index "
+                             "(e.g. DepthSplat's assets/evaluation_index_re10k.json)")
+        return chunk_plan(config.data, config.index, protocol, config.scenes)
+    paths = select_scenes(find_scenes(config.data), tuple(sorted(config.scenes)))
+    if config.index:
+        return folder_index_plan(paths, config.index, protocol)
+    samples, skipped = [], []
+    for path in paths:
+        try:
+            samples += scene_samples(path, protocol, protocol.context_views or model.config.num_views,
+                                     config.samples_per_scene)
+        except DataError as exc:
+            skipped.append({"scene": path.name, "reason": str(exc)})
+    return eager_plan(samples, skipped)
+
+
+def _finished(file: pathlib.Path, header: dict) -> tuple[list[Row], int]:
+    """The rows and the count of the samples an earlier run of the same evaluation finished (none without a file).
+
+    Raises:
+        DataError: ``file`` is not results JSON, or holds another evaluation (other options, model, device,
+            LPIPS or samples), naming what differs.
+    """
+    if not file.exists():
+        return [], 0
+    try:
+        saved = json.loads(file.read_text())
+        rows, done = [Row(**r) for r in saved["rows"]], int(saved["samples_done"])
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise DataError(f"{file} is not the results of a codecsplat eval ({type(exc).__name__}: {exc}): "
+                        "use another --out, or --restart to overwrite it") from None
+    differs = [name for name, value in _identity(header).items() if _identity(saved).get(name) != value]
+    if differs:
+        raise DataError(f"{file} holds another evaluation ({', '.join(differs)} differ): use another --out, or "
+                        "--restart to overwrite it")
+    return rows, done
+
+
+def _identity(header: dict) -> dict:
+    """What must match for a run to resume another: the options that change results, model, device, LPIPS, plan."""
+    config = header.get("config")
+    if isinstance(config, dict):
+        config = {k: v for k, v in config.items() if k not in RUN_SETTINGS}
+        for key in ("data", "index"):
+            if config.get(key):
+                config[key] = str(pathlib.Path(config[key]).resolve())
+        config = json.loads(json.dumps(config))  # tuples as lists, as read back from the file
+    return {"options": config, "model": header.get("model_id"), "device": header.get("device"),
+            "LPIPS": header.get("lpips"), "samples": header.get("plan")}
+
 
 def _protocol(config: EvalConfig) -> Protocol:
+    """The protocol of ``config`` with its target-view count and size options applied (InputError when bad)."""
     if config.protocol not in PROTOCOLS:
         raise InputError(f"unknown protocol {config.protocol!r}; choose one of {', '.join(PROTOCOLS)}")
     protocol = PROTOCOLS[config.protocol]
     if config.target_views is not None:
         if config.target_views < 1:
             raise InputError(f"target views must be >= 1, got {config.target_views}")
-        protocol = Protocol(protocol.name, protocol.width, protocol.height, protocol.context_views, config.target_views)
+        protocol = replace(protocol, target_views=config.target_views)
+    if config.size is not None:
+        width, height = config.size
+        if width < 4 or height < 4 or width % 4 or height % 4:
+            raise InputError(f"size sides must be positive multiples of 4, got {width}x{height}")
+        protocol = replace(protocol, width=width, height=height)
     if config.samples_per_scene < 1:
         raise InputError(f"samples per scene must be >= 1, got {config.samples_per_scene}")
     return protocol
