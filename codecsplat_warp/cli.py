@@ -69,7 +69,8 @@ def _number_list(kind, text: str, what: str) -> list:
 
 def build_parser() -> argparse.ArgumentParser:
     from .demo import DEMO_LAMBDAS, DEMO_SEED, DEMO_TARGET_VIEWS
-    from .evaluate import BASELINE_NAMES, PAPER_LAMBDAS, PROTOCOLS
+    from .eval.evaluate import BASELINE_NAMES, PAPER_LAMBDAS
+    from .eval.protocols import PROTOCOLS
     from .export.video import FORMATS
 
     parser = _Parser(prog="codecsplat", description="CodecSplat on NVIDIA Warp: KB-level feed-forward 3D Gaussian "
@@ -112,22 +113,28 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--format", choices=FORMATS, default="png", help="png frames, gif or mp4 (H.264, through imageio-ffmpeg)")
     render.add_argument("--fps", type=float, default=30.0, help="frames per second of gif/mp4")
 
-    evaluate = sub.add_parser("eval", help="the paper's Tables 1 and 2 (with baselines) on a folder of scenes")
+    evaluate = sub.add_parser("eval", help="the paper's Tables 1 and 2 (with baselines) on scene folders or chunks")
     _model_options(evaluate)
-    evaluate.add_argument("--data", required=True, help="a scene folder or a folder of scene folders")
+    evaluate.add_argument("--data", required=True, help="a scene folder, a folder of scene folders, or a folder of "
+                          "RE10K/ACID/DL3DV .torch chunks with their index.json (needs --index)")
     evaluate.add_argument("--protocol", choices=list(PROTOCOLS), default="re10k",
-                          help="re10k: 2 views 256x256; dl3dv: 8 views 256x448; scene: stored size, model's views")
+                          help="re10k: 2 views 256x256, depth 0.5-100 on chunks; dl3dv: 8 views 256x448, depth 0.5-200 "
+                          "on chunks; scene: stored size, model's views (scene folders keep their depth range)")
     evaluate.add_argument("--lambdas", default=",".join(f"{x:g}" for x in PAPER_LAMBDAS), help="CodecSplat lambdas")
     evaluate.add_argument("--baselines", default=",".join(BASELINE_NAMES),
                           help=f"comma list of {', '.join(BASELINE_NAMES)}, or none")
-    evaluate.add_argument("--scenes", default="", help="comma list of scene folder names to keep (default: all)")
+    evaluate.add_argument("--scenes", default="", help="comma list of scene folder names (or chunk scene keys) to keep "
+                          "(default: all)")
     evaluate.add_argument("--samples-per-scene", type=int, default=1)
-    evaluate.add_argument("--index", help="evaluation index JSON (pixelSplat form: scene folder -> context and target "
-                                          "frames); fixes the samples, --samples-per-scene is then unused")
+    evaluate.add_argument("--index", help="evaluation index JSON (pixelSplat form: scene folder or chunk key -> context "
+                          "and target frames, null to skip); fixes the samples, --samples-per-scene is then unused")
     evaluate.add_argument("--targets", type=int, help="target views per sample (default: the protocol's, 3)")
     evaluate.add_argument("--lpips-weights", help="folder with lpips_{vgg,alex}.safetensors (default $CODECSPLAT_LPIPS_WEIGHTS)")
     evaluate.add_argument("--png-sh-clusters", type=int, default=8192, help="K_SH of the PNG baseline")
     evaluate.add_argument("--kmeans-iterations", type=int, default=10, help="Lloyd steps of the PNG baseline's k-means")
+    evaluate.add_argument("--size", help="WIDTHxHEIGHT instead of the protocol's image size (its depth range stays)")
+    evaluate.add_argument("--restart", action="store_true",
+                          help="start over instead of resuming the finished samples in OUT/results.json")
     evaluate.add_argument("-o", "--out", default="codecsplat-eval", help="output folder (default ./codecsplat-eval)")
 
     selfcheck = sub.add_parser("selfcheck", help="every kernel vs its float64 reference (--device auto: every device)")
@@ -197,7 +204,7 @@ def _parts_table(parts: dict[str, int]) -> list[str]:
 # Commands
 def _cmd_demo(args) -> int:
     from .demo import DemoConfig, run_demo
-    from .evaluate import format_bytes
+    from .eval.report import format_bytes
 
     device = _device(args)
     model = _load_model(args, device)
@@ -378,7 +385,7 @@ def _cmd_render(args) -> int:
 
 
 def _cmd_eval(args) -> int:
-    from .evaluate import BASELINE_NAMES, EvalConfig, evaluate
+    from .eval.evaluate import BASELINE_NAMES, EvalConfig, evaluate
 
     baselines = () if args.baselines.strip().lower() == "none" else tuple(
         b.strip() for b in args.baselines.split(",") if b.strip())
@@ -393,7 +400,7 @@ def _cmd_eval(args) -> int:
                         lpips_weights=args.lpips_weights, png_sh_clusters=args.png_sh_clusters,
                         kmeans_iterations=args.kmeans_iterations, progress=not args.json,
                         scenes=tuple(name.strip() for name in args.scenes.split(",") if name.strip()),
-                        index=args.index)
+                        index=args.index, size=_size(args.size) if args.size else None, resume=not args.restart)
     result = evaluate(model, config, device)
     lines = [f"{len(result['scenes'])} scene(s), {args.protocol} protocol, {result['machine']}",
              "", "Table 1", result["tables"]["table1"], "", "Table 2 (seconds)", result["tables"]["table2"], "",

@@ -29,8 +29,8 @@ from .codec import bytes_report, check_lambda
 from .data.procedural import ProceduralConfig, procedural_scene
 from .errors import InputError
 from .data import split_context_targets
-from .evaluate import (BACKBONE, COPY_NEAREST, Sample, format_bytes, nearest_context_images, plot_rate_distortion,
-                       pyplot, save_figure)
+from .eval.protocols import Sample, nearest_context_images
+from .eval.report import BACKBONE, COPY_NEAREST, format_bytes, plot_rate_distortion, pyplot, save_figure
 from .export.files import atomic_output, write_bytes, write_json
 from .export.ply import write_ply
 from .export.video import to_uint8_frames

@@ -75,14 +75,23 @@ def test_codec_hook_measures_psnr_against_encode_decode_time(tmp_path):
     device = torch.device("cpu")
     context, targets, scene = report.codec_scene(model.config, device)
     rows = report.measure_codec(model, context, targets, [32.0, 512.0], device, reps=1, scene=scene)
-    assert [r["config"] for r in rows] == ["lambda=32", "lambda=512"]
+    assert [r["config"] for r in rows] == ["copy nearest context view", "lambda=32", "lambda=512"]
+    floor, coded = rows[0], rows[1:]
     for r in rows:
-        assert r["kernel"] == "codec" and r["bytes"] > 0 and r["time_ms"] > 0
-        assert abs(r["error"] - 10 ** (-r["psnr_db"] / 10)) < 1e-12
+        assert r["kernel"] == "codec" and abs(r["error"] - 10 ** (-r["psnr_db"] / 10)) < 1e-12
+    for r in coded:
+        assert r["bytes"] > 0 and r["time_ms"] > 0
+    images, cameras = context
+    target_images, target_cameras = targets  # the floor: each target copies its nearest context view by centre distance
+    nearest = (target_cameras.centers[:, None] - cameras.centers[None]).norm(dim=-1).argmin(dim=1)
+    mse = float(((images[nearest] - target_images) ** 2).mean(dim=(1, 2, 3)).log10().mean())
+    assert floor["bytes"] == 0 and "time_ms" not in floor and abs(floor["psnr_db"] + 10 * mse) < 1e-3
     result = report.finish({"quick": True, "commit": "test", "machines": {"cpu": "test machine"}, "rows": rows,
                             "not_exposed": {}, "codec": f"measured on {scene}"}, tmp_path)  # fmt: skip
-    assert [r["pareto"] for r in result["rows"]] == [not _dominated(r, result["rows"]) for r in result["rows"]]
-    assert "## codec" in (tmp_path / "report.md").read_text() and (tmp_path / "pareto.png").is_file()
+    assert result["rows"][0]["pareto"] is None  # no run time: on no front
+    assert [r["pareto"] for r in coded] == [not _dominated(r, coded) for r in coded]
+    text = (tmp_path / "report.md").read_text()
+    assert "## codec" in text and "| copy nearest context view |" in text and (tmp_path / "pareto.png").is_file()
 
 
 def test_interleaved_rounds_alternate_their_order():

@@ -10,8 +10,9 @@ import torch
 from codecsplat_warp.cameras import Cameras, intrinsics_matrix
 from codecsplat_warp.errors import DataError, InputError
 from codecsplat_warp.data import split_context_targets
-from codecsplat_warp.evaluate import (EvalConfig, Row, evaluate, find_scenes, format_bytes, select_scenes, summarize,
-                                      table1, table2)
+from codecsplat_warp.eval.evaluate import EvalConfig, evaluate
+from codecsplat_warp.eval.protocols import find_scenes, select_scenes
+from codecsplat_warp.eval.report import Row, format_bytes, summarize, table1, table2
 from test_cli_commands import write_scene
 
 
@@ -95,7 +96,7 @@ def test_summary_means_and_paper_tables():
 
 
 def test_an_interrupted_eval_keeps_the_samples_it_finished(tmp_path, monkeypatch):
-    from codecsplat_warp.evaluate import Evaluator
+    from codecsplat_warp.eval.evaluate import Evaluator
     from codecsplat_warp.model import CodecSplat
     from codecsplat_warp.nn.config import get_preset
 

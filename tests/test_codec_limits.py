@@ -7,7 +7,7 @@ import torch
 from conftest import tiny_coding_model
 
 from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
-from codecsplat_warp.evaluate import Sample
+from codecsplat_warp.eval.protocols import Sample
 from codecsplat_warp.metrics.image import psnr
 from train.codec_limits import sample_scores
 

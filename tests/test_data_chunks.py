@@ -11,9 +11,9 @@ import pytest
 import torch
 from PIL import Image
 
-from codecsplat_warp.data import (BoundedSamplerConfig, SceneDataset, load_chunk_scene, load_evaluation_index,
-                                  load_index, load_scene, make_dataloader, preprocess_scene, read_chunk,
-                                  resize_and_crop, sample_bounded_views, write_chunks)
+from codecsplat_warp.data import (BoundedSamplerConfig, ProceduralConfig, SceneDataset, load_chunk_scene,
+                                  load_evaluation_index, load_index, load_scene, make_dataloader, preprocess_scene,
+                                  procedural_scene, read_chunk, resize_and_crop, sample_bounded_views, write_chunks)
 from codecsplat_warp.data.views import context_gap_bounds
 from codecsplat_warp.errors import DataError
 
@@ -97,6 +97,27 @@ def test_chunk_errors(tmp_path):
     (tmp_path / "index.json").write_text(json.dumps({"s": "absent.torch"}))
     with pytest.raises(DataError, match=r"index\.json: scene 's' points to .*absent\.torch"):
         load_index(tmp_path)
+
+
+def test_load_scene_reads_one_scene_of_a_chunk(tmp_path):
+    scenes = [replace(procedural_scene(seed, ProceduralConfig(width=32, height=24, num_views=3, texture_size=8)),
+                      key=f"scene{seed}") for seed in range(3)]
+    write_chunks(scenes, tmp_path, progress=False)  # one chunk holds all three
+    scene = load_scene(tmp_path / "000000.torch", key="scene1")
+    assert scene.key == "scene1" and scene.num_views == 3 and scene.source == f"chunk:{tmp_path / '000000.torch'}"
+    torch.testing.assert_close(scene.cameras.w2c, scenes[1].cameras.w2c.double(), atol=1e-5, rtol=0)
+    assert torch.all(scene.cameras.near == 0.5) and torch.all(scene.cameras.far == 100.0)  # DepthSplat's RE10K range
+    errors = [float((scene.decoded_images().float() - s.images.float()).abs().mean()) for s in scenes]
+    assert errors[1] < 12.0 and errors[1] < min(errors[0], errors[2]) / 3  # its own images, through JPEG at quality 95
+    assert load_scene(tmp_path, key="scene2").key == "scene2"  # a chunk folder, through its index.json
+    with pytest.raises(DataError, match=r"000000\.torch holds no scene 'scene7'; it holds scene0, scene1, scene2"):
+        load_scene(tmp_path / "000000.torch", key="scene7")
+    with pytest.raises(DataError, match=r"holds 3 scenes: choose one with key= \(scene0, scene1, scene2\)"):
+        load_scene(tmp_path / "000000.torch")
+    write_chunks(scenes[:1], tmp_path / "one", progress=False)
+    assert load_scene(tmp_path / "one" / "000000.torch").key == "scene0"  # a chunk of one scene needs no key
+    with pytest.raises(DataError, match="key='scene0' selects a scene of a .torch chunk"):
+        load_scene(tmp_path / "one" / "index.json", key="scene0")
 
 
 def test_evaluation_index_skips_null(tmp_path):

@@ -17,7 +17,7 @@ import pathlib
 import pytest
 import torch
 
-from codecsplat_warp.evaluate import PROTOCOLS, find_scenes, index_samples, nearest_context_images
+from codecsplat_warp.eval.protocols import PROTOCOLS, find_scenes, index_samples, nearest_context_images
 from codecsplat_warp.metrics.image import psnr
 from codecsplat_warp.model.pretrained import load_pretrained
 

@@ -11,7 +11,7 @@ from conftest import LPIPS_WEIGHTS, needs_lpips
 
 from codecsplat_warp.cameras import Cameras, intrinsics_matrix
 from codecsplat_warp.errors import CameraError, DataError, InputError
-from codecsplat_warp.evaluate import PROTOCOLS, find_scenes, index_samples
+from codecsplat_warp.eval.protocols import PROTOCOLS, find_scenes, index_samples
 from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.nn.config import ModelConfig, get_preset
 from codecsplat_warp.nn.mono import VGGMono

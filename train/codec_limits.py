@@ -24,7 +24,7 @@ import pathlib
 import torch
 
 from codecsplat_warp.device import resolve_device
-from codecsplat_warp.evaluate import PROTOCOLS, Sample, find_scenes, index_samples
+from codecsplat_warp.eval.protocols import PROTOCOLS, Sample, find_scenes, index_samples
 from codecsplat_warp.metrics.image import psnr
 from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.model.pretrained import load_pretrained

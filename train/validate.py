@@ -2,7 +2,7 @@
 
 The samples are the entries of an evaluation index file (scene folder -> context and target frames, e.g.
 ``train/heldout/index-re10k.json``) under ``--data``, preprocessed to the ``--protocol`` size as
-``codecsplat eval`` does (:func:`codecsplat_warp.evaluate.index_samples`). Each is rendered by the run's
+``codecsplat eval`` does (:func:`codecsplat_warp.eval.protocols.index_samples`). Each is rendered by the run's
 latest checkpoint and compared with the "copy the nearest context view" baseline. PSNR on [0,1]-clipped images.
 
     python -m train.validate --run runs/stage1 --data DIR --index train/heldout/index-re10k.json --protocol re10k
@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from codecsplat_warp.device import resolve_device
 from codecsplat_warp.errors import InputError
-from codecsplat_warp.evaluate import PROTOCOLS, Sample, find_scenes, index_samples, nearest_context_images
+from codecsplat_warp.eval.protocols import PROTOCOLS, Sample, find_scenes, index_samples, nearest_context_images
 from codecsplat_warp.metrics.image import psnr
 from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.nn.config import ModelConfig

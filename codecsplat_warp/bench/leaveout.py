@@ -1,7 +1,7 @@
 """``codecsplat bench leaveout``: leaving out what a scene does not need, measured (issue 8).
 
 a. **Pruning decoded Gaussians** (:mod:`codecsplat_warp.model.prune`) on real scenes: each scene is cut to the
-   RE10K protocol (2 context views, 3 targets, 256x256; :func:`codecsplat_warp.evaluate.scene_samples`),
+   RE10K protocol (2 context views, 3 targets, 256x256; :func:`codecsplat_warp.eval.protocols.scene_samples`),
    encoded and decoded with the shipped model, and its Gaussians pruned for the target views. Reported: how
    many are transparent / outside every target frustum, the prune time, the median time of rendering the
    targets with all and with the kept Gaussians, the PLY bytes of both, and the largest difference between
@@ -41,7 +41,7 @@ from tqdm.auto import tqdm
 from ..codec import bytes_report, parse_bitstream
 from ..codec.bitstream import FLAG_FLOAT64_CAMERAS, HEADER_BYTES, framed_bytes, record_bytes
 from ..errors import DataError, InputError
-from ..evaluate import PROTOCOLS, Protocol, find_scenes, scene_samples, select_scenes
+from ..eval.protocols import PROTOCOLS, Protocol, find_scenes, scene_samples, select_scenes
 from ..export.ply import encode_ply
 from ..measure import cuda_kernel_ms, format_table, interleaved_medians, machine_name
 from ..model.pretrained import load_pretrained

@@ -4,7 +4,8 @@ scenes with exact ground truth, and a torch Dataset / DataLoader path.
 :func:`load_scene` (:mod:`.formats`) reads one scene folder (or pose file), detecting its format among
 :data:`FORMATS`.
 
-RE10K / ACID / DL3DV ``.torch`` chunks hold many scenes: use :func:`read_chunk` / :func:`load_chunk_scene`.
+RE10K / ACID / DL3DV ``.torch`` chunks hold many scenes: ``load_scene("PATH/000000.torch", key=...)`` (or a chunk
+folder with its ``index.json`` and ``key``) reads one, :func:`read_chunk` all of a chunk.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """One scene folder or pose file -> :class:`~codecsplat_warp.data.scene.Scene`, whatever its format.
 
-:func:`load_scene` reads one scene folder (or pose file), detecting its format:
+:func:`load_scene` reads one scene folder (or pose file, or one scene of a ``.torch`` chunk), detecting its format:
 
 ========================  =====================================================================
 format                    detected by
@@ -21,13 +21,14 @@ from __future__ import annotations
 import pathlib
 
 from ..errors import DataError
+from .chunks import load_chunk_scene, read_chunk
 from .colmap import is_colmap_model, load_colmap
 from .kitti import load_kitti
 from .llff import load_llff
 from .middlebury import load_middlebury
 from .nerf import load_nerf
 from .neus import load_neus
-from .scene import Scene
+from .scene import Scene, name_list
 from .scene_json import is_scene_json, load_scene_json
 from .sevenscenes import load_7scenes, pose_files_of
 
@@ -40,22 +41,32 @@ _LOADERS = {
 }
 
 
-def load_scene(path, format: str | None = None, prefer_native: bool = False) -> Scene:
-    """Load one scene from a folder or a pose file, detecting the format.
+def load_scene(path, format: str | None = None, prefer_native: bool = False, key: str | None = None) -> Scene:
+    """Load one scene from a folder, a pose file or a ``.torch`` chunk, detecting the format.
 
     Args:
         path: a scene folder, a pose file (``cameras.json``, ``poses_bounds.npy``, ``transforms*.json``,
-            ``cameras_sphere.npz``, ``*_par.txt``, KITTI ``poses.txt``, 7-Scenes ``camera-intrinsics.txt``)
-            or a COLMAP model folder.
+            ``cameras_sphere.npz``, ``*_par.txt``, KITTI ``poses.txt``, 7-Scenes ``camera-intrinsics.txt``),
+            a COLMAP model folder, a ``.torch`` chunk, or a chunk folder (``index.json`` + chunks).
         format: force one of :data:`FORMATS` (the pose file is then looked up in the folder).
         prefer_native: in a folder holding both, read the native pose file instead of ``cameras.json``.
+        key: the scene of a chunk (may be left out when the chunk holds one scene) or of a chunk folder. Chunks
+            store no depth bounds: the cameras get DepthSplat's RE10K range, near 0.5 and far 100 (another
+            dataset's: ``scene.cameras.with_depth_range``, or :func:`read_chunk` with ``near`` / ``far``).
 
     Raises:
-        DataError: nothing readable found, unknown format name, or any loader error (naming file and frame).
+        DataError: nothing readable found, unknown format name, a key the chunk does not hold (listing those it
+            does), a key for a path that is not a chunk, or any loader error (naming file and frame).
     """
     path = pathlib.Path(path)
     if not path.exists():
         raise DataError(f"{path} does not exist")
+    if path.suffix == ".torch" and path.is_file():
+        return _chunk_scene(path, key)
+    if key is not None:
+        if path.is_dir() and (path / "index.json").is_file():
+            return load_chunk_scene(path, key)
+        raise DataError(f"{path}: key={key!r} selects a scene of a .torch chunk or chunk folder, and this is neither")
     if format is not None and format not in FORMATS:
         raise DataError(f"unknown scene format {format!r}; known: {', '.join(FORMATS)}")
     if path.is_file():
@@ -73,6 +84,19 @@ def load_scene(path, format: str | None = None, prefer_native: bool = False) -> 
     raise DataError(f"{path}: no supported pose file (cameras.json, poses_bounds.npy, transforms*.json, "
                     "cameras_sphere.npz, *_par.txt, COLMAP sparse model, KITTI poses.txt + calib.txt, "
                     "7-Scenes camera-intrinsics.txt + poses/*.pose.txt)")
+
+
+def _chunk_scene(file: pathlib.Path, key: str | None) -> Scene:
+    """The scene ``key`` of one chunk file (its only scene when ``key`` is None)."""
+    scenes = read_chunk(file)
+    keys = [scene.key for scene in scenes]
+    if key is None:
+        if len(scenes) != 1:
+            raise DataError(f"{file} holds {len(scenes)} scenes: choose one with key= ({name_list(keys)})")
+        return scenes[0]
+    if key not in keys:
+        raise DataError(f"{file} holds no scene {key!r}; it holds {name_list(keys)}")
+    return scenes[keys.index(key)]
 
 
 def detect_formats(folder) -> dict[str, pathlib.Path]:

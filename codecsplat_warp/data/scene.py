@@ -199,6 +199,12 @@ def read_image_size(path: pathlib.Path | io.BytesIO, where: str) -> tuple[int, i
         raise DataError(f"{where}: cannot read image {path}: {exc}") from None
 
 
+def name_list(names: Sequence[str], shown: int = 5) -> str:
+    """Up to ``shown`` names, comma separated, then how many more (``"none"`` when empty): for error messages."""
+    more = f" and {len(names) - shown} more" if len(names) > shown else ""
+    return ", ".join(names[:shown]) + more or "none"
+
+
 def require_file(path: pathlib.Path) -> pathlib.Path:
     """``path`` when it is an existing file, else DataError naming it."""
     if not path.is_file():

@@ -1,0 +1,363 @@
+"""``codecsplat eval``: the paper's evaluation (Tables 1, 2 and 4) on scene folders or RE10K/ACID/DL3DV chunks.
+
+For every scene sample (context views -> target views: from an evaluation index file with ``index``, which a
+chunk folder needs, else picked by :func:`codecsplat_warp.data.split_context_targets` around evenly spread
+anchors; see :mod:`codecsplat_warp.eval.protocols`):
+
+* **CodecSplat** at each lambda: ``model.encode_scene`` -> bitstream -> ``model.decode_scene`` -> render the
+  targets. Bytes are the whole bitstream (header, cameras, feature streams).
+* **Codec-free reference and baselines**, all on the same model's codec-free output (``model(images,
+  cameras)``: Gaussians, ``F_c``, ``D_enc``): the Gaussians as an uncompressed float32 3DGS PLY (the
+  reconstruction upper bound), (a) PLY attributes quantised + Deflate, (b) gsplat-style PNG, (c) the
+  feature ``F_c`` (and depth) in float16 + Deflate, each encoded, decoded and rendered.
+* **Copy the nearest context view**: the floor every table shows, at zero bytes: each target is predicted
+  by the context image whose camera centre is nearest to the target's, unchanged.
+
+Metrics on the targets: PSNR (prediction clipped to [0,1]), SSIM (11x11 Gaussian window), LPIPS-VGG and
+LPIPS-Alex (when weights are found); see :mod:`codecsplat_warp.metrics.image`.
+
+Timing (Table 2, seconds; CUDA work is synchronised before a clock is read): *GS generation* is the
+network work before compression: for CodecSplat the encoder's backbone up to ``F_c`` (MVEnc, FeatHead,
+R_pre), for the baselines the whole codec-free forward pass that produces their Gaussians; *compress* is
+the rest of the encoder (CodecSplat: latent analysis, entropy coding, bitstream) or the baseline's
+encoder; *decompress* is bytes -> Gaussians on the device. A warm-up pass on the first sample (Warp
+kernel loading, allocator) is not timed.
+
+Outputs (``--out``): ``results.json`` (every sample and the summary; a rerun resumes from it), ``tables.md`` (Tables 1 and 2 in
+the paper's form), ``rate_distortion.png`` and ``distortion_vs_time.png``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import pathlib
+import statistics
+import time
+from dataclasses import asdict, dataclass, replace
+from typing import Callable, Iterator
+
+import torch
+from tqdm.auto import tqdm
+
+from ..baselines import FeatureDeflate, PlyDeflate, PngCompression
+from ..codec import bytes_report, check_lambda
+from ..errors import DataError, InputError
+from ..export.files import write_json, write_text
+from ..export.ply import decode_ply, encode_ply
+from ..gaussians import Gaussians
+from ..measure import machine_name, synchronize, timed
+from ..metrics.image import ImageMetrics
+from ..model.codecsplat import model_id
+from .protocols import (PROTOCOLS, Protocol, Sample, SamplePlan, chunk_plan, eager_plan, find_scenes, folder_index_plan,
+                        is_chunk_folder, nearest_context_images, scene_samples, select_scenes)
+from .report import (BACKBONE, CODECSPLAT, COPY_NEAREST, Row, markdown_report, plot_distortion_vs_time,
+                     plot_rate_distortion, summarize, table1, table2)
+
+BASELINE_NAMES = ("ply", "png", "feature")
+"""Baselines ``--baselines`` may name: (a) PLY + Deflate, (b) PNG, (c) float16 feature + Deflate."""
+
+PAPER_LAMBDAS = (16.0, 32.0, 64.0, 128.0, 256.0, 512.0, 1024.0)
+
+
+# --------------------------------------------------------------------------------------------------
+# Running the methods
+@contextlib.contextmanager
+def backbone_clock(model: torch.nn.Module, device: torch.device) -> Iterator[dict]:
+    """Record in the yielded dict, under ``"features_done"``, the clock time when the backbone's last
+    module (``model.refine_pre``, which outputs F_c) finishes: splits encoder time into GS generation and
+    compression."""
+    marks: dict[str, float] = {}
+
+    def hook(*_):
+        synchronize(device)
+        marks["features_done"] = time.perf_counter()
+
+    handle = model.refine_pre.register_forward_hook(hook)
+    try:
+        yield marks
+    finally:
+        handle.remove()
+
+
+class Evaluator:
+    """Runs every method on samples and scores the renders.
+
+    Args:
+        model: a :class:`CodecSplat` with its codec, in eval mode, on ``device``.
+        metrics: the image metrics.
+        lambdas: CodecSplat operating points.
+        baselines: subset of :data:`BASELINE_NAMES`.
+        png: the PNG baseline with its settings (K_SH and Lloyd steps).
+    """
+
+    def __init__(self, model, metrics: ImageMetrics, lambdas, baselines, device: torch.device,
+                 png: PngCompression = PngCompression()):
+        self.model = model
+        self.metrics = metrics
+        self.lambdas = [float(lam) for lam in lambdas]
+        self.baselines = list(baselines)
+        self.device = device
+        self.ply_deflate = PlyDeflate()
+        self.png = png
+        self.feature = FeatureDeflate()
+
+    @property
+    def steps_per_sample(self) -> int:
+        """Methods run per sample (progress bar units)."""
+        return 2 + len(self.lambdas) + len(self.baselines)
+
+    def warm_up(self, sample: Sample) -> None:
+        """Run the network, codec and renderer once, untimed (loads Warp kernels, warms allocators)."""
+        sample = sample.to(self.device)
+        with torch.no_grad(), self._autocast():
+            self.model(sample.context_images, sample.context_cameras)
+        data = self.model.encode(sample.context_images, sample.context_cameras, self.lambdas[0])
+        self.model.render(self.model.decode(data), sample.target_cameras)
+
+    def run(self, sample: Sample, progress: tqdm | None = None) -> list[Row]:
+        """Every method's :class:`Row` on one sample."""
+        sample = sample.to(self.device)
+        rows = []
+
+        def step(row: Row) -> None:
+            rows.append(row)
+            if progress is not None:
+                progress.update(1)
+
+        step(self._copy_nearest(sample))
+        for lam in self.lambdas:
+            step(self._codecsplat(sample, lam))
+        with torch.no_grad(), self._autocast():
+            out, gen_s = timed(lambda: self.model(sample.context_images, sample.context_cameras), self.device)
+        gaussians = out["gaussians"].detach()
+        step(self._gaussian_codec(sample, BACKBONE + "→PLY", "float32", gaussians, gen_s, encode_ply, decode_ply))
+        if "ply" in self.baselines:
+            step(self._gaussian_codec(sample, BACKBONE + "→PLY+Deflate", self.ply_deflate.setting, gaussians, gen_s,
+                                      self.ply_deflate.encode, self.ply_deflate.decode))
+        if "png" in self.baselines:
+            step(self._gaussian_codec(sample, BACKBONE + "→PNG", self.png.setting, gaussians, gen_s,
+                                      self.png.encode, self.png.decode))
+        if "feature" in self.baselines:
+            step(self._feature_codec(sample, out, gen_s))
+        return rows
+
+    def _autocast(self):
+        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.device.type == "cuda")
+
+    def _score(self, gaussians: Gaussians, sample: Sample) -> dict[str, float]:
+        """Mean of each metric over the target views rendered from ``gaussians``."""
+        with torch.no_grad():
+            rgb = self.model.render(gaussians, sample.target_cameras)["rgb"]
+        values = self.metrics(rgb, sample.target_images)
+        return {name: statistics.fmean(v) for name, v in values.items()}
+
+    def _copy_nearest(self, sample: Sample) -> Row:
+        rgb = nearest_context_images(sample.context_images, sample.context_cameras, sample.target_cameras)
+        values = self.metrics(rgb, sample.target_images)
+        return Row(sample.scene, COPY_NEAREST, "no bitstream", 0, {name: statistics.fmean(v) for name, v in values.items()},
+                   0.0, 0.0, 0.0)
+
+    def _codecsplat(self, sample: Sample, lam: float) -> Row:
+        with backbone_clock(self.model, self.device) as marks:
+            synchronize(self.device)
+            start = time.perf_counter()
+            encoded = self.model.encode_scene(sample.context_images, sample.context_cameras, lam)
+            synchronize(self.device)
+            end = time.perf_counter()
+        decoded, decompress_s = timed(lambda: self.model.decode_scene(encoded.data), self.device)
+        return Row(sample.scene, CODECSPLAT, f"λ={lam:g}", len(encoded.data), self._score(decoded.gaussians, sample),
+                   gen_s=marks["features_done"] - start, compress_s=end - marks["features_done"],
+                   decompress_s=decompress_s, lam=lam, parts=bytes_report(encoded.data))
+
+    def _gaussian_codec(self, sample: Sample, method: str, setting: str, gaussians: Gaussians, gen_s: float,
+                        encode: Callable, decode: Callable) -> Row:
+        data, compress_s = timed(lambda: encode(gaussians), self.device)
+        decoded, decompress_s = timed(lambda: decode(data, self.device), self.device)
+        return Row(sample.scene, method, setting, len(data), self._score(decoded, sample), gen_s, compress_s,
+                   decompress_s)
+
+    def _feature_codec(self, sample: Sample, out: dict, gen_s: float) -> Row:
+        data, compress_s = timed(lambda: self.feature.encode(out["F_c"], out["D_enc"], sample.context_cameras),
+                                 self.device)
+
+        def decode() -> Gaussians:
+            scene = self.feature.decode(data, self.device)
+            with torch.no_grad(), self._autocast():
+                return self.model.decode_gaussians(scene.feature, scene.depth, scene.cameras)
+
+        decoded, decompress_s = timed(decode, self.device)
+        return Row(sample.scene, "CodecSplat w/ Deflate", self.feature.setting, len(data), self._score(decoded, sample),
+                   gen_s, compress_s, decompress_s)
+
+
+# --------------------------------------------------------------------------------------------------
+# Entry point
+@dataclass
+class EvalConfig:
+    """Options of ``codecsplat eval`` (see :func:`evaluate`)."""
+
+    data: str
+    """A scene folder, a folder of scene folders, or a chunk folder (``index.json`` + ``*.torch``, needs ``index``)."""
+    out: str = "codecsplat-eval"
+    protocol: str = "re10k"
+    lambdas: tuple[float, ...] = PAPER_LAMBDAS
+    baselines: tuple[str, ...] = BASELINE_NAMES
+    samples_per_scene: int = 1
+    target_views: int | None = None
+    lpips_weights: str | None = None
+    png_sh_clusters: int = 8192
+    kmeans_iterations: int = 10
+    progress: bool = True
+    scenes: tuple[str, ...] = ()
+    """Scene folder names (or chunk scene keys) to keep; empty keeps every scene under ``data``."""
+    index: str | None = None
+    """Evaluation index file: the scenes and their context/target frames (``samples_per_scene`` unused)."""
+    size: tuple[int, int] | None = None
+    """(width, height) in pixels, each a multiple of 4, instead of the protocol's (its depth range and views stay)."""
+    resume: bool = True
+    """Keep the samples an earlier run of the same evaluation finished in ``out/results.json`` (False: start over)."""
+
+
+RUN_SETTINGS = ("out", "progress", "resume")
+"""EvalConfig fields that do not change the results: a run may resume another that differs only in these."""
+
+
+def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
+    """Evaluate ``model`` on every sample of ``config.data``; write results.json, tables.md and the plots.
+
+    Scenes with too few views for the protocol are skipped and listed under ``skipped``. results.json is
+    rewritten after every sample (``samples_done`` of ``samples_total``, and the ``plan``: every sample's scene,
+    context and target frames), so an interrupted run keeps its rows; run again with the same options it
+    resumes after the last finished sample (its rows, timings included, are kept as measured then). A chunk
+    folder is streamed one chunk at a time (:func:`~codecsplat_warp.eval.protocols.chunk_plan`).
+
+    Returns:
+        {"config", "device", "machine", "model_id", "scenes", "skipped", "lpips", "files", "plan", "samples_done",
+        "samples_total", "summary", "rows", "tables"}.
+    Raises:
+        InputError: unknown protocol or baseline, empty lambda list, bad size, a chunk folder without an index
+            or with the ``scene`` protocol.
+        DataError: no usable scene; an index naming scenes or frames the data does not have; results.json of
+            another evaluation in ``out`` (with ``resume``).
+    """
+    protocol = _protocol(config)
+    unknown = sorted(set(config.baselines) - set(BASELINE_NAMES))
+    if unknown:
+        raise InputError(f"unknown baseline(s) {', '.join(unknown)}; choose from {', '.join(BASELINE_NAMES)}")
+    if not config.lambdas:
+        raise InputError("give at least one lambda")
+    for lam in config.lambdas:
+        check_lambda(lam)
+    png = PngCompression(sh_clusters=config.png_sh_clusters, kmeans_iterations=config.kmeans_iterations)
+    metrics = ImageMetrics(config.lpips_weights, device)
+    plan = _plan(config, protocol, model)
+    if not plan.keys:
+        raise DataError(f"no scene under {config.data} is usable with the {protocol.name} protocol: "
+                        + ("; ".join(f"{s['scene']}: {s['reason']}" for s in plan.skipped) or "the index selects none"))
+    evaluator = Evaluator(model, metrics, config.lambdas, config.baselines, device, png)
+    out = pathlib.Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"json": out / "results.json", "markdown": out / "tables.md", "rate_distortion": out / "rate_distortion.png",
+             "distortion_vs_time": out / "distortion_vs_time.png"}
+    header = {
+        "config": {**asdict(config), "protocol": asdict(protocol)}, "device": str(device),
+        "machine": machine_name(device), "model_id": model_id(model), "scenes": sorted({k[0] for k in plan.keys}),
+        "skipped": plan.skipped, "lpips": metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1",
+        "files": {k: str(v) for k, v in files.items()}, "plan": [[s, list(c), list(t)] for s, c, t in plan.keys],
+    }
+    rows, start = _finished(files["json"], header) if config.resume else ([], 0)
+    total = len(plan.keys)
+    with tqdm(total=(total - start) * evaluator.steps_per_sample, desc="eval", unit="method",
+              disable=None if config.progress else True) as progress:  # None: only on a terminal
+        for done, sample in enumerate(plan.load(start), start + 1):
+            if done == start + 1:
+                evaluator.warm_up(sample)
+            progress.set_postfix_str(sample.scene)
+            rows += evaluator.run(sample, progress)
+            # after every sample, so an interrupted run keeps what it measured
+            write_json(files["json"], {**header, "samples_done": done, "samples_total": total,
+                                       "summary": summarize(rows), "rows": [asdict(r) for r in rows]})
+    summary = summarize(rows)
+    result = {**header, "samples_done": total, "samples_total": total, "summary": summary,
+              "rows": [asdict(r) for r in rows], "tables": {"table1": table1(summary), "table2": table2(summary)}}
+    write_json(files["json"], result)
+    write_text(files["markdown"], markdown_report(result))
+    plot_rate_distortion(summary, files["rate_distortion"])
+    plot_distortion_vs_time(summary, files["distortion_vs_time"])
+    return result
+
+
+def _plan(config: EvalConfig, protocol: Protocol, model) -> SamplePlan:
+    """The samples of ``config.data``: an index's entries (chunks streamed, scene folders loaded when due), or
+    ``samples_per_scene`` nearest-view splits of every scene folder (loaded at once, unusable ones skipped)."""
+    if is_chunk_folder(config.data):
+        if not config.index:
+            raise InputError(f"{config.data} is a chunk folder: give the evaluation index of its scenes with --index "
+                             "(e.g. DepthSplat's assets/evaluation_index_re10k.json)")
+        return chunk_plan(config.data, config.index, protocol, config.scenes)
+    paths = select_scenes(find_scenes(config.data), tuple(sorted(config.scenes)))
+    if config.index:
+        return folder_index_plan(paths, config.index, protocol)
+    samples, skipped = [], []
+    for path in paths:
+        try:
+            samples += scene_samples(path, protocol, protocol.context_views or model.config.num_views,
+                                     config.samples_per_scene)
+        except DataError as exc:
+            skipped.append({"scene": path.name, "reason": str(exc)})
+    return eager_plan(samples, skipped)
+
+
+def _finished(file: pathlib.Path, header: dict) -> tuple[list[Row], int]:
+    """The rows and the count of the samples an earlier run of the same evaluation finished (none without a file).
+
+    Raises:
+        DataError: ``file`` is not results JSON, or holds another evaluation (other options, model, device,
+            LPIPS or samples), naming what differs.
+    """
+    if not file.exists():
+        return [], 0
+    try:
+        saved = json.loads(file.read_text())
+        rows, done = [Row(**r) for r in saved["rows"]], int(saved["samples_done"])
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise DataError(f"{file} is not the results of a codecsplat eval ({type(exc).__name__}: {exc}): "
+                        "use another --out, or --restart to overwrite it") from None
+    differs = [name for name, value in _identity(header).items() if _identity(saved).get(name) != value]
+    if differs:
+        raise DataError(f"{file} holds another evaluation ({', '.join(differs)} differ): use another --out, or "
+                        "--restart to overwrite it")
+    return rows, done
+
+
+def _identity(header: dict) -> dict:
+    """What must match for a run to resume another: the options that change results, model, device, LPIPS, plan."""
+    config = header.get("config")
+    if isinstance(config, dict):
+        config = {k: v for k, v in config.items() if k not in RUN_SETTINGS}
+        for key in ("data", "index"):
+            if config.get(key):
+                config[key] = str(pathlib.Path(config[key]).resolve())
+        config = json.loads(json.dumps(config))  # tuples as lists, as read back from the file
+    return {"options": config, "model": header.get("model_id"), "device": header.get("device"),
+            "LPIPS": header.get("lpips"), "samples": header.get("plan")}
+
+
+def _protocol(config: EvalConfig) -> Protocol:
+    """The protocol of ``config`` with its target-view count and size options applied (InputError when bad)."""
+    if config.protocol not in PROTOCOLS:
+        raise InputError(f"unknown protocol {config.protocol!r}; choose one of {', '.join(PROTOCOLS)}")
+    protocol = PROTOCOLS[config.protocol]
+    if config.target_views is not None:
+        if config.target_views < 1:
+            raise InputError(f"target views must be >= 1, got {config.target_views}")
+        protocol = replace(protocol, target_views=config.target_views)
+    if config.size is not None:
+        width, height = config.size
+        if width < 4 or height < 4 or width % 4 or height % 4:
+            raise InputError(f"size sides must be positive multiples of 4, got {width}x{height}")
+        protocol = replace(protocol, width=width, height=height)
+    if config.samples_per_scene < 1:
+        raise InputError(f"samples per scene must be >= 1, got {config.samples_per_scene}")
+    return protocol

@@ -1,0 +1,182 @@
+"""Reports of ``codecsplat eval``: the per-sample :class:`Row`, means over samples, Tables 1 and 2 in the paper's
+form, the Markdown file, and the rate-distortion and distortion-vs-time plots."""
+
+from __future__ import annotations
+
+import pathlib
+import statistics
+from dataclasses import dataclass, field
+from typing import Callable
+
+from ..export.files import atomic_output
+from ..measure import format_table
+
+CODECSPLAT = "CodecSplat"
+BACKBONE = "CodecSplat w/o codec"
+COPY_NEAREST = "Copy nearest context view"
+
+
+@dataclass
+class Row:
+    """One method on one sample: bytes, quality of the target renders, seconds."""
+
+    scene: str
+    method: str
+    setting: str
+    bytes: int
+    metrics: dict[str, float]
+    gen_s: float
+    compress_s: float
+    decompress_s: float
+    lam: float | None = None
+    parts: dict[str, int] = field(default_factory=dict)
+
+
+def summarize(rows: list[Row]) -> list[dict]:
+    """Mean over samples of every (method, setting), in first-appearance order."""
+    groups: dict[tuple[str, str], list[Row]] = {}
+    for row in rows:
+        groups.setdefault((row.method, row.setting), []).append(row)
+    summary = []
+    for (method, setting), group in groups.items():
+        entry = {"method": method, "setting": setting, "lam": group[0].lam, "samples": len(group),
+                 "bytes": statistics.fmean(r.bytes for r in group)}
+        for name in group[0].metrics:
+            entry[name] = statistics.fmean(r.metrics[name] for r in group)
+        for key in ("gen_s", "compress_s", "decompress_s"):
+            entry[key] = statistics.fmean(getattr(r, key) for r in group)
+        summary.append(entry)
+    return summary
+
+
+def format_bytes(count: float) -> str:
+    """Bytes as the paper prints them: KiB below 1 MiB, MiB above."""
+    return f"{count / 2**20:.2f} MiB" if count >= 2**20 else f"{count / 2**10:.2f} KiB"
+
+
+TABLE1_COLUMNS = [("method", "Method", "s"), ("setting", "Codec Setting", "s"), ("bytes_text", "Bytes/scene ↓", "s"),
+                  ("psnr", "PSNR ↑", ".2f"), ("ssim", "SSIM ↑", ".3f"), ("lpips_vgg", "LPIPS-VGG ↓", ".3f"),
+                  ("lpips_alex", "LPIPS-Alex ↓", ".3f")]
+TABLE2_COLUMNS = [("method", "Method", "s"), ("setting", "Codec Setting", "s"), ("gen_s", "GS Gen. T. ↓", ".3f"),
+                  ("compress_s", "Compress T. ↓", ".3f"), ("decompress_s", "Decompress T. ↓", ".3f")]
+
+
+def table1(summary: list[dict]) -> str:
+    """Table 1 (and 4): bytes per scene and target-view quality of every method (n/a: LPIPS without weights)."""
+    return format_table([{**s, "bytes_text": format_bytes(s["bytes"])} for s in _paper_order(summary)], TABLE1_COLUMNS)
+
+
+def table2(summary: list[dict]) -> str:
+    """Table 2: GS generation, compression and decompression seconds; CodecSplat averaged over its lambdas."""
+    rows = [s for s in _paper_order(summary) if s["method"] not in (CODECSPLAT, COPY_NEAREST)]
+    codec = [s for s in summary if s["method"] == CODECSPLAT]
+    if codec:
+        lams = sorted(s["lam"] for s in codec)
+        setting = f"λ={lams[0]:g}" if len(lams) == 1 else f"λ={lams[0]:g},…,{lams[-1]:g}"
+        mean = {k: statistics.fmean(s[k] for s in codec) for k in ("gen_s", "compress_s", "decompress_s")}
+        rows.append({"method": CODECSPLAT, "setting": setting, **mean})
+    return format_table(rows, TABLE2_COLUMNS)
+
+
+def _paper_order(summary: list[dict]) -> list[dict]:
+    """Baselines and the reference first, CodecSplat rows (by lambda) last, as in the paper."""
+    return [s for s in summary if s["method"] != CODECSPLAT] + sorted(
+        (s for s in summary if s["method"] == CODECSPLAT), key=lambda s: s["lam"])
+
+
+def plot_rate_distortion(summary: list[dict], path: pathlib.Path) -> None:
+    """Quality against bytes per scene (log scale): CodecSplat's lambda curve, baselines as points."""
+    names = [n for n in ("psnr", "ssim", "lpips_alex") if n in summary[0]]
+    labels = {"psnr": "PSNR (dB) ↑", "ssim": "SSIM ↑", "lpips_alex": "LPIPS-Alex ↓"}
+    fig, axes = _figure(len(names))
+    for ax, name in zip(axes, names):
+        _plot_methods(ax, summary, x=lambda s: s["bytes"] / 1024, y=lambda s, n=name: s[n], connect=True)
+        ax.set_xlabel("KiB per scene")
+        ax.set_ylabel(labels[name])
+    _save(fig, axes, path)
+
+
+def plot_distortion_vs_time(summary: list[dict], path: pathlib.Path) -> None:
+    """PSNR against encoder (GS generation + compression) and decoder seconds, log scale."""
+    fig, axes = _figure(2)
+    for ax, (label, x) in zip(axes, (("encode s (GS gen. + compress)", lambda s: s["gen_s"] + s["compress_s"]),
+                                      ("decompress s", lambda s: s["decompress_s"]))):
+        _plot_methods(ax, summary, x=x, y=lambda s: s["psnr"], connect=False)
+        ax.set_xlabel(label)
+        ax.set_ylabel("PSNR (dB) ↑")
+    _save(fig, axes, path)
+
+
+def pyplot():
+    """matplotlib.pyplot on the non-interactive Agg backend (no display needed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _figure(panels: int):
+    fig, axes = pyplot().subplots(1, panels, figsize=(5.2 * panels, 4.2), squeeze=False)
+    return fig, list(axes[0])
+
+
+def _plot_methods(ax, summary: list[dict], x: Callable, y: Callable, connect: bool) -> None:
+    """CodecSplat's operating points (joined in lambda order when ``connect``) and one marker per other method,
+    on a log x axis; the copy-nearest floor (no bytes, no time) as a dashed horizontal line."""
+    codec = sorted((s for s in summary if s["method"] == CODECSPLAT), key=lambda s: s["lam"])
+    if codec:
+        ax.plot([x(s) for s in codec], [y(s) for s in codec], "o-" if connect else "o", color="C3", label=CODECSPLAT,
+                zorder=3)
+        for s in codec:
+            ax.annotate(f"λ={s['lam']:g}", (x(s), y(s)), textcoords="offset points", xytext=(4, -10), fontsize=7)
+    styles = zip("sD^vP*X", ("C0", "C1", "C2", "C4", "C5", "C6", "C7"))
+    for s, (marker, colour) in zip((s for s in summary if s["method"] not in (CODECSPLAT, COPY_NEAREST)), styles):
+        ax.plot([x(s)], [y(s)], marker, color=colour, label=f"{s['method']} ({s['setting']})")
+    for s in summary:
+        if s["method"] == COPY_NEAREST:
+            ax.axhline(y(s), color="0.4", ls="--", lw=1, label=f"{COPY_NEAREST} (0 bytes)")
+    ax.set_xscale("log")
+    ax.xaxis.set_minor_formatter(pyplot().NullFormatter())
+    ax.grid(True, which="both", alpha=0.3)
+
+
+def _save(fig, axes, path: pathlib.Path) -> None:
+    axes[0].legend(fontsize=7, loc="best")
+    save_figure(fig, path)
+
+
+def save_figure(fig, path: pathlib.Path) -> None:
+    """Write a matplotlib figure as PNG (atomically) and close it."""
+    fig.tight_layout()
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, dpi=130)
+    pyplot().close(fig)
+
+
+
+def markdown_report(result: dict) -> str:
+    """The Markdown file: what was run, then Tables 1 and 2."""
+    protocol = result["config"]["protocol"]
+    size = f"{protocol['height']}x{protocol['width']}" if protocol["width"] else "stored size"
+    lines = [
+        f"# codecsplat eval: {protocol['name']} protocol",
+        "",
+        f"{len(result['scenes'])} scene(s), {result['config']['samples_per_scene']} sample(s) each; "
+        f"{protocol['context_views'] or 'model'} context view(s) at {size} (HxW), {protocol['target_views']} target "
+        f"view(s) per sample. Device: {result['machine']}. Model {result['model_id']}. LPIPS: {result['lpips']}.",
+        "",
+        "## Table 1: bytes per scene and target-view quality",
+        "",
+        result["tables"]["table1"],
+        "",
+        "## Table 2: timing (seconds)",
+        "",
+        result["tables"]["table2"],
+        "",
+    ]
+    if result["skipped"]:
+        lines += ["Skipped: " + "; ".join(f"{s['scene']} ({s['reason']})" for s in result["skipped"]), ""]
+    return "\n".join(lines)
+
