@@ -30,7 +30,6 @@ import warp as wp
 from warp._src import context as warp_context  # Launch internals the replay relies on (see _Command)
 from warp._src.types import array_t  # the descriptor type wp.from_torch(return_ctype=True) returns
 
-from .checks import check_finite, check_tensor, common_device  # noqa: F401  re-exported for model/codecsplat.py only
 from .errors import InputError
 
 _TORCH_TO_WARP_DTYPE = {

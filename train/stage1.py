@@ -1,6 +1,6 @@
-"""Stage-1 training (paper §3.5): the codec-free CodecSplat generator, rendered at target views.
+"""Stage-1 training (paper §3.6): the codec-free CodecSplat generator, rendered at target views.
 
-Loss: MSE + 0.05 * LPIPS-VGG between rendered and true target images (Eq. 12), plus the decoder depth
+Loss: MSE + 0.05 * LPIPS-VGG between rendered and true target images (Eq. 14), plus the decoder depth
 head's auxiliary ``depth_aux_weight * |S_aux - S_enc|_1`` on detached inputs (it trains only that head, so
 that stage 2 starts with one; see :class:`codecsplat_warp.model.CodecSplat`). AdamW (lr 1e-4, weight decay
 0.01), linear warm-up then cosine decay to 10 %, gradient-norm clipping, bf16 autocast on CUDA (fp32 on
@@ -143,7 +143,7 @@ def render_distortion(rgb: torch.Tensor, target: torch.Tensor, lpips: LPIPS, lpi
 
 
 def stage1_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBatch, config: "TrainConfig") -> tuple[torch.Tensor, dict]:
-    """Eq. 12 with D_render = MSE + lpips_weight * LPIPS-VGG, plus the depth head's auxiliary; returns (loss,
+    """Eq. 14 with D_render = MSE + lpips_weight * LPIPS-VGG, plus the depth head's auxiliary; returns (loss,
     metrics as detached 0-dim tensors, read back only when logged).
 
     ``model`` may be the DDP wrapper; rendering uses the bare module.

@@ -1,4 +1,4 @@
-"""Stage-2 training (paper §3.5, Eqs. 11-13): the codec, decoder depth head and post-codec refiner.
+"""Stage-2 training (paper §3.6, Eqs. 15-18): the codec, decoder depth head and post-codec refiner.
 
 Initialised from a stage-1 run (``--init``): the backbone, the GS head and the decoder depth head (which
 stage 1 trained as an auxiliary on F_c) are copied, and the post-codec refiner R_post starts as a copy of
@@ -12,15 +12,15 @@ PREFIX,...`` narrows that to the parameters named so, e.g. a grown codec's new l
 
     (lambda / 1024) * [D_render + gamma * |S - S_enc|_1 + alpha(step) * |F^_c - F_c|^2 / |F_c|^2] + beta * R
 
-with D_render = MSE + 0.05 LPIPS-VGG (as in stage 1), S the decoder's normalised inverse depth (Eq. 7),
-S_enc the encoder's (Eq. 13), gamma = 0.1 and R the estimated rate in bits per context pixel (Eq. 6
+with D_render = MSE + 0.05 LPIPS-VGG (as in stage 1), S the decoder's normalised inverse depth (Eq. 9),
+S_enc the encoder's (Eq. 18), gamma = 0.1 and R the estimated rate in bits per context pixel (Eq. 7
 divided by the batch's V*H*W: D_render is a per-pixel mean, and the paper's beta only balances it in these
 units). beta defaults to 1e-4 for the dl3dv preset and 4e-4 otherwise (RE10K). Over the first
 ``--rate-warmup-steps`` steps beta ramps up linearly from 0 (rate annealing): a fresh codec's decoder cannot
 use its latents yet, and a full rate penalty from the start drives every latent to the prior (posterior
 collapse) before it learns to.
 
-The alpha term is a documented deviation from the paper (Eq. 12 has no feature term): the relative squared
+The alpha term is a documented deviation from the paper (Eq. 16 has no feature term): the relative squared
 error of the decoded feature against the frozen encoder's F_c, weighted ``--feature-weight`` at the first
 step and falling linearly to ``--feature-weight-final`` over ``--feature-decay-steps``. It gives the codec a
 dense target from the first step, where the render loss alone reaches it only through the frozen GS head.
@@ -113,7 +113,7 @@ def sample_lambda(seed: int, step: int, rank: int) -> float:
 
 def stage2_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBatch, config: Stage2Config,
                 step: int) -> tuple[torch.Tensor, dict]:
-    """Eq. 12 (plus the feature term, see the module docstring) for one batch at a lambda drawn for ``step``;
+    """Eq. 16 (plus the feature term, see the module docstring) for one batch at a lambda drawn for ``step``;
     returns (loss, metrics as floats or detached 0-dim tensors).
 
     ``model`` may be the DDP wrapper; rendering and the coded-rate check use the bare module.

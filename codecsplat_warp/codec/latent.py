@@ -1,4 +1,4 @@
-"""The learned feature codec (paper Eq. 5-6): a lambda-conditioned hierarchical VAE on F_c.
+"""The learned feature codec (paper Eqs. 6-7): a lambda-conditioned hierarchical VAE on F_c.
 
 Structure (QARV / lossy-vae style, all views of a scene as one batch, each view coded independently):
 
@@ -22,7 +22,7 @@ Quantisation has three forms, all driven through the same top-down pass:
 
 All of the following happens on the gained grid (``z``, ``mu`` there mean ``g z``, ``g mu``):
 
-* training (:class:`NoisyQuantizer`): the rate (Eq. 6) is evaluated at ``z + U(-0.5, 0.5)``, while the
+* training (:class:`NoisyQuantizer`): the rate (Eq. 7) is evaluated at ``z + U(-0.5, 0.5)``, while the
   decoder path receives ``round(z - mu) + mu`` with a straight-through gradient (the "mixed" scheme of
   Minnen & Singh 2020, which keeps the decoder's training input equal to its test input);
 * coding (:class:`RoundingQuantizer`): residual symbols ``s = round(z - m)`` with the prior quantised as
@@ -359,7 +359,7 @@ class CodecOutput:
 
     Attributes:
         feature: F^_c [V,C_F,h,w], the reconstructed feature.
-        bits: [V] estimated bits of each view (Eq. 6; noisy in training, the discrete model's otherwise).
+        bits: [V] estimated bits of each view (Eq. 7; noisy in training, the discrete model's otherwise).
     """
 
     feature: torch.Tensor

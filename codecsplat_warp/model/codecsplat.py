@@ -1,4 +1,4 @@
-"""CodecSplat network (paper §3.2-3.4): the codec-free path of stage 1 and the codec path of stage 2.
+"""CodecSplat network (paper §3.2-3.5): the codec-free path of stage 1 and the codec path of stage 2.
 
 Codec-free (``forward(images, cameras)``, stage 1)::
 
@@ -28,13 +28,15 @@ import torch
 from torch import nn
 
 from ..cameras import Cameras
+from ..checks import check_finite, check_tensor, common_device
 from ..codec.bitstream import pack_bitstream, parse_bitstream
 from ..codec.entropy import entropy_model_digest
-from ..codec.latent import LatentCodec, Timer, check_lambda, no_timer
+from ..codec.latent import LatentCodec, check_lambda
 from ..codec.scene import DecodedScene, EncodedScene
-from ..device import check_finite, check_tensor, common_device, resolve_device
+from ..device import resolve_device
 from ..errors import BitstreamError, DeviceMismatchError, InputError
 from ..gaussians import Gaussians
+from ..measure import Timer, no_timer
 from ..nn.config import FEATURE_STRIDE, MODEL_STRIDE, ModelConfig
 from ..nn.mono import build_mono_backbone
 from ..ops.raster import rasterize
@@ -104,10 +106,10 @@ class CodecSplat(nn.Module):
 
         Returns:
             dict with ``F_mv`` [V,C,H/4,W/4], ``P_depth`` [V,D,H/4,W/4], ``F_g`` and ``F_c`` [V,C_F,H/2,W/2],
-            ``D_enc`` [V,H,W] (metric, in [near, far]), ``S_enc`` [V,H,W] (Eq. 13, in [0,1]), ``neighbours``
+            ``D_enc`` [V,H,W] (metric, in [near, far]), ``S_enc`` [V,H,W] (Eq. 18, in [0,1]), ``neighbours``
             [V,M] and ``gaussians`` (:class:`Gaussians`, N = V*H*W, float32): codec-free from (F_c, D_enc),
             or with ``lam`` decoded from F^_c; with ``lam`` also ``F_hat`` [V,C_F,H/2,W/2] (F^_c), ``S`` and
-            ``D_hat`` [V,H,W] (decoder depth, Eqs. 7-8) and ``rate_bits`` (scalar, estimated bits of all views);
+            ``D_hat`` [V,H,W] (decoder depth, Eqs. 9-10) and ``rate_bits`` (scalar, estimated bits of all views);
             codec-free in training mode also ``S_aux`` [V,H,W], the depth head's S on the detached F_c.
 
         Raises:
@@ -134,7 +136,7 @@ class CodecSplat(nn.Module):
 
     def decode_feature(self, feature: torch.Tensor, cameras: Cameras,
                        neighbours: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, Gaussians]:
-        """§3.4 from the reconstructed feature F^_c [V,C_F,H/2,W/2]: depth head (S, D^ [V,H,W]), post-codec
+        """§3.5 from the reconstructed feature F^_c [V,C_F,H/2,W/2]: depth head (S, D^ [V,H,W]), post-codec
         refiner with A(F^_c, D^) (Eq. 5), GS head, Map 2D->3D. ``neighbours`` [V,M] default to the cameras'
         nearest views (as MVEnc picks them). Returns (S, D^, Gaussians)."""
         s, depth = self.depth_head(feature, cameras)
@@ -144,7 +146,7 @@ class CodecSplat(nn.Module):
         return s, depth, self.decode_gaussians(refined, depth, cameras)
 
     def decode_gaussians(self, feature: torch.Tensor, depth: torch.Tensor, cameras: Cameras) -> Gaussians:
-        """Eqs. 9-10: GSHead(feature [V,C_F,H/2,W/2], depth [V,H,W]) then Map 2D->3D -> world Gaussians."""
+        """Eqs. 11-12: GSHead(feature [V,C_F,H/2,W/2], depth [V,H,W]) then Map 2D->3D -> world Gaussians."""
         pixels = self.gs_head(feature, depth, cameras)
         with torch.autocast(feature.device.type, enabled=False):  # world positions and SH rotations in float32
             return map_to_world(pixels, depth.float(), cameras)
@@ -153,7 +155,7 @@ class CodecSplat(nn.Module):
     # Bitstreams
     @torch.no_grad()
     def encode_scene(self, images: torch.Tensor, cameras: Cameras, lam: float, timer: Timer = no_timer) -> EncodedScene:
-        """Encoder: context views -> scene bitstream (Eq. 7) and the coded symbols.
+        """Encoder: context views -> scene bitstream (Eq. 8) and the coded symbols.
 
         MVEnc, FeatHead and R_pre give F_c (bf16 autocast on CUDA), the codec quantises and range codes its
         latents, and the bitstream packs them with the cameras (at the model's float precision) and lambda
@@ -184,7 +186,7 @@ class CodecSplat(nn.Module):
 
     @torch.no_grad()
     def decode_scene(self, data: bytes, device=None, timer: Timer = no_timer) -> DecodedScene:
-        """Decoder (§3.4): bitstream -> latents -> F^_c -> depth head -> R_post -> GS head -> Gaussians.
+        """Decoder (§3.5): bitstream -> latents -> F^_c -> depth head -> R_post -> GS head -> Gaussians.
 
         Uses only the bitstream (cameras, lambda, latents). Runs on the model's device (bf16 autocast on
         CUDA outside the float64 prior path). ``timer`` times ``bitstream`` (parsing) and ``entropy``.

@@ -1,8 +1,8 @@
-"""Depth head (paper Eqs. 7-8, 13), Gaussian head (Eq. 9) and the 2D->3D map (Eq. 10).
+"""Depth head (paper Eqs. 9-10, 18), Gaussian head (Eq. 11) and the 2D->3D map (Eq. 12).
 
 Normalised inverse depth ``S`` in [0, 1] maps to metric depth inside the per-view bounds:
 ``D = 1 / (1/f + S (1/n - 1/f))`` (S = 0 is the far bound f, S = 1 the near bound n), and back by
-``S = (1/D - 1/f) / (1/n - 1/f)`` (Eq. 13).
+``S = (1/D - 1/f) / (1/n - 1/f)`` (Eq. 18).
 """
 
 from __future__ import annotations
@@ -36,13 +36,13 @@ def _bounds(near: torch.Tensor, far: torch.Tensor, like: torch.Tensor) -> tuple[
 
 
 def depth_from_normalized(s: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
-    """Eq. 8: metric depth [V,...] from normalised inverse depth ``s`` [V,...] in [0,1] and bounds near/far [V]."""
+    """Eq. 10: metric depth [V,...] from normalised inverse depth ``s`` [V,...] in [0,1] and bounds near/far [V]."""
     inv_far, span = _bounds(near, far, s)
     return 1.0 / (inv_far + s * span)
 
 
 def normalized_from_depth(depth: torch.Tensor, near: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
-    """Eq. 13: normalised inverse depth S_enc [V,...] of metric depth [V,...] (0 at far, 1 at near)."""
+    """Eq. 18: normalised inverse depth S_enc [V,...] of metric depth [V,...] (0 at far, 1 at near)."""
     inv_far, span = _bounds(near, far, depth)
     return (1.0 / depth - inv_far) / span
 
@@ -66,7 +66,7 @@ class SubPixelUpsample(nn.Module):
 
 
 class DepthHead(nn.Module):
-    """Eqs. 7-8: normalised inverse depth S = sigmoid(DepthHead(F)) and metric depth D from a feature.
+    """Eqs. 9-10: normalised inverse depth S = sigmoid(DepthHead(F)) and metric depth D from a feature.
 
     Used by the decoder on the reconstructed feature (stage 2); the codec-free path uses D_enc.
     """
@@ -86,7 +86,7 @@ class DepthHead(nn.Module):
 
 @dataclass
 class PixelGaussians:
-    """Per-pixel Gaussian attributes in CAMERA space, before the 2D->3D map (Eq. 9 output).
+    """Per-pixel Gaussian attributes in CAMERA space, before the 2D->3D map (Eq. 11 output).
 
     Attributes:
         opacities: [V,H,W] in (0,1).
@@ -104,7 +104,7 @@ class PixelGaussians:
 
 
 class GaussianHead(nn.Module):
-    """Eq. 9: per-pixel Gaussian attributes from a feature [V,C_F,h,w] and depth [V,H,W].
+    """Eq. 11: per-pixel Gaussian attributes from a feature [V,C_F,h,w] and depth [V,H,W].
 
     The 1/2-resolution feature is upsampled to the image grid by a learned sub-pixel convolution, the
     normalised inverse depth is appended, and a conv stack predicts 1 + 2 + 3 + 4 + 3K raw channels.
@@ -148,7 +148,7 @@ class GaussianHead(nn.Module):
 
 
 # --------------------------------------------------------------------------------------------------
-# Eq. 10: pixel-aligned camera-space predictions to world space
+# Eq. 12: pixel-aligned camera-space predictions to world space
 #
 # * centres: the pixel centre shifted by the predicted sub-pixel offset, unprojected at its depth
 #   (:func:`codecsplat_warp.ops.geometry.unproject` plus the exact in-plane shift ``R_c2w (du d/fx, dv d/fy, 0)``);
@@ -157,7 +157,7 @@ class GaussianHead(nn.Module):
 #   gives the colour the head predicted for the corresponding camera-space directions;
 # * scales and opacities are frame-independent.
 def map_to_world(pixels: PixelGaussians, depth: torch.Tensor, cameras: Cameras) -> Gaussians:
-    """Eq. 10: pixel-aligned camera-space Gaussians [V,H,W,...] and depth [V,H,W] -> world :class:`Gaussians`.
+    """Eq. 12: pixel-aligned camera-space Gaussians [V,H,W,...] and depth [V,H,W] -> world :class:`Gaussians`.
 
     N = V*H*W Gaussians ordered view-major, then row, then column.
     """

@@ -61,7 +61,7 @@ class MVEncOutput:
         prob: P_depth [V,D,h,w] softmax matching probabilities over the candidates.
         candidates: [V,D] candidate depths, from far (index 0) to near (index D-1).
         depth: D_enc [V,H,W] refined encoder depth at full resolution, inside [near, far].
-        normalized_depth: S_enc [V,H,W] in [0,1], the normalised inverse depth of ``depth`` (Eq. 13).
+        normalized_depth: S_enc [V,H,W] in [0,1], the normalised inverse depth of ``depth`` (Eq. 18).
         neighbours: [V,M] int64 source views used for attention and matching (the k nearest by camera distance).
     """
 

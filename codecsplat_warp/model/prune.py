@@ -34,7 +34,7 @@ import torch
 
 from ..cameras import Cameras
 from ..gaussians import Gaussians
-from ..kernels.raster_project import ALPHA_THRESHOLD
+from ..kernels.raster_row import ALPHA_THRESHOLD
 from ..ops.raster import project_gaussians
 from .codecsplat import render_depth_range
 

@@ -3,7 +3,7 @@
 ``F_out = F + R(F, A(F, D), S)`` where ``A`` is the Warp reprojection average
 (:func:`codecsplat_warp.ops.geometry.reproject_average`: each view's pixels are back-projected with its own
 depth, projected into the neighbour views and the neighbours' features sampled and averaged) and ``S`` the
-normalised inverse depth (Eq. 13). The paper feeds ``D^-1``; ``S`` is the same quantity affinely rescaled
+normalised inverse depth (Eq. 18). The paper feeds ``D^-1``; ``S`` is the same quantity affinely rescaled
 per view by its near/far bounds, which makes the input independent of the scene's arbitrary world scale.
 A validity channel (1 where at least one neighbour saw the point) tells R where ``A`` is meaningful.
 The last convolution starts at zero, so an untrained refiner is the identity.

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import argparse
 import resource
-import time
 
 import torch
 
 from ..cameras import Cameras, intrinsics_matrix
 from ..device import resolve_device
+from ..measure import timed
 from .codecsplat import CodecSplat
 from ..nn.config import PRESETS, ModelConfig
 
@@ -45,14 +45,8 @@ def measure(config: ModelConfig, device: torch.device, repeats: int = 3) -> dict
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda")
 
     def run() -> float:
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        start = time.perf_counter()
         with torch.no_grad(), autocast:
-            model(images, cameras)
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        return time.perf_counter() - start
+            return timed(lambda: model(images, cameras), device)[1]
 
     run()  # warm-up: Warp kernel compilation / loading, allocator
     if device.type == "cuda":
