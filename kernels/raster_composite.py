@@ -36,12 +36,12 @@ import warp as wp
 
 from .lanes import WARP_SIZE, warp_any, warp_max, warp_sum
 from .raster_row import (
-    ALPHA_THRESHOLD, BLUE, CONIC_A, CONIC_B, CONIC_C, DEPTH, GREEN, MEAN_X, MEAN_Y, OPACITY, RED, ROW_WIDTH,
+    ALPHA_THRESHOLD, BLUE, CONIC_A, CONIC_B, CONIC_C, DEPTH, GREEN, MAX_ALPHA, MEAN_X, MEAN_Y, OPACITY, RED,
+    ROW_WIDTH,
 )  # fmt: skip
 
 wp.set_module_options({"enable_backward": False})
 
-MAX_ALPHA = 0.999
 OUTSIDE_ROW = wp.constant(1 << 30)
 """Pixel row given to lanes that own no pixel (larger than any image height)."""
 MIN_ALPHA_FOR_DEPTH = 1.0e-10

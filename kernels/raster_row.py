@@ -30,3 +30,6 @@ ALPHA_LEVELS = 255.0
 ALPHA_THRESHOLD = 1.0 / ALPHA_LEVELS
 """Opacity/alpha below which a Gaussian contributes nothing (gsplat's ALPHA_THRESHOLD, 1/255): the projection culls
 a Gaussian whose opacity is below it, and the compositing skips a row whose alpha at a pixel is below it."""
+
+MAX_ALPHA = 0.999
+"""Largest alpha one Gaussian takes at a pixel (gsplat's clamp), so that transmittance never reaches zero."""

@@ -15,9 +15,8 @@ import math
 
 import torch
 
-from ..kernels.raster_row import ALPHA_LEVELS, ALPHA_THRESHOLD
+from ..kernels.raster_row import ALPHA_LEVELS, ALPHA_THRESHOLD, MAX_ALPHA
 
-MAX_ALPHA = 0.999
 MIN_TRANSMITTANCE = 1e-4
 """Default early-stop transmittance (gsplat's)."""
 LOW_PASS_PX2 = 0.3
