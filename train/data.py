@@ -15,13 +15,20 @@ context-view budget. Each scene of the batch is then a procedural scene or a rea
 * **procedural** rooms and tabletops (:mod:`codecsplat_warp.data.procedural`, exact geometry) are textured
   with random crops of the real training photographs when ``DataSpec.photo_textures`` is set, next to the
   synthetic patterns;
+* **chunk** scenes (``chunks:DIR``: RE10K / ACID / DL3DV ``.torch`` chunks with ``index.json``,
+  :mod:`codecsplat_warp.data.chunks`) are read one chunk at a time (a few chunks cached per worker); a
+  sample draws its context and targets with pixelSplat's / DepthSplat's bounded view sampler
+  (:func:`~codecsplat_warp.data.views.sample_bounded_views`, ``DataSpec.view_sampler``; the context gap widens
+  with the training step, ``BatchShape.step``) and is resized and cropped as real scenes are;
 * with ``DataSpec.photometric`` every scene gets one random brightness, contrast, saturation and gamma
   change for all of its views (a camera's exposure, the same in context and targets).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import pathlib
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Callable
 
@@ -29,7 +36,10 @@ import torch
 from torch.nn import functional as F
 
 from codecsplat_warp.cameras import Cameras
-from codecsplat_warp.data.views import split_context_targets
+from codecsplat_warp.data.chunks import load_index, read_chunk
+from codecsplat_warp.data.scene import Scene
+from codecsplat_warp.data.views import (BoundedSamplerConfig, context_gap_bounds, sample_bounded_views,
+                                        split_context_targets)
 from codecsplat_warp.errors import DataError, InputError
 from codecsplat_warp.nn.config import MODEL_STRIDE, ModelConfig
 
@@ -42,17 +52,25 @@ PHOTOMETRIC = {"brightness": (0.8, 1.2), "contrast": (0.8, 1.2), "saturation": (
 PHOTO_TEXTURES_PER_SCENE = 6
 """Photograph crops a procedural scene gets as extra textures (next to its 8 synthetic ones)."""
 
+CHUNK_CACHE = 2
+"""Chunks a :class:`ChunkScenes` keeps read (images still JPEG-encoded) per process, least recently used dropped."""
+
+MAX_SCENE_DRAWS = 16
+"""Chunk scenes a sample draws before giving up when each is too short for the context gap (pixelSplat skips them)."""
+
 
 @dataclass(frozen=True)
 class BatchShape:
     """What one training batch holds: ``scenes`` scenes of ``views`` context and ``targets`` target views,
-    every image ``height`` x ``width`` pixels."""
+    every image ``height`` x ``width`` pixels, drawn at optimiser step ``step`` (the context gap schedule of
+    chunk scenes follows it)."""
 
     views: int
     targets: int
     height: int
     width: int
     scenes: int
+    step: int = 0
 
 
 @dataclass(frozen=True)
@@ -67,6 +85,10 @@ class DataSpec:
         procedural_fraction: share of procedural scenes when real scenes are given too (``mix:``).
         photo_textures: texture procedural scenes with crops of the real training photographs.
         photometric: per-scene photometric augmentation.
+        view_sampler: the bounded view sampler of chunk scenes (gaps in frames; its context and target
+            counts are replaced by each batch's); the default is DepthSplat's RE10K schedule.
+        batches_per_step: batches per optimiser step (``accumulate * world_size``): batch ``index`` is drawn
+            at step ``index // batches_per_step``.
     """
 
     views: tuple[int, ...]
@@ -76,14 +98,17 @@ class DataSpec:
     procedural_fraction: float = 0.5
     photo_textures: bool = False
     photometric: bool = False
+    view_sampler: BoundedSamplerConfig = BoundedSamplerConfig()
+    batches_per_step: int = 1
 
     def __post_init__(self) -> None:
         if not self.views or any(v < 2 for v in self.views):
             raise InputError(f"context view counts must be >= 2, got {self.views}")
         if not self.sizes or any(h % MODEL_STRIDE or w % MODEL_STRIDE or h < 1 or w < 1 for h, w in self.sizes):
             raise InputError(f"image sizes must be positive multiples of {MODEL_STRIDE}, got {self.sizes}")
-        if self.targets < 1 or self.batch_views < 1:
-            raise InputError(f"targets and batch_views must be >= 1, got {self.targets}, {self.batch_views}")
+        if self.targets < 1 or self.batch_views < 1 or self.batches_per_step < 1:
+            raise InputError("targets, batch_views and batches_per_step must be >= 1, got "
+                             f"{self.targets}, {self.batch_views}, {self.batches_per_step}")
         if not 0.0 <= self.procedural_fraction <= 1.0:
             raise InputError(f"procedural_fraction must be in [0, 1], got {self.procedural_fraction}")
 
@@ -110,12 +135,27 @@ def parse_sizes(text: str) -> tuple[tuple[int, int], ...]:
         raise InputError(f"sizes must be comma-separated HEIGHTxWIDTH, got {text!r}") from None
 
 
+def fixed_context_gap(text: str) -> BoundedSamplerConfig:
+    """``"MIN,MAX"`` (frames) -> the default bounded sampler with the context gap drawn from [MIN, MAX] at
+    every step (no warm-up); InputError on anything else."""
+    try:
+        low, high = (int(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(f"a context gap must be MIN,MAX (frames), got {text!r}") from None
+    if not 1 <= low <= high:
+        raise InputError(f"a context gap needs 1 <= MIN <= MAX, got {text!r}")
+    return BoundedSamplerConfig(min_distance_between_context_views=low, max_distance_between_context_views=high,
+                                initial_min_distance_between_context_views=low,
+                                initial_max_distance_between_context_views=high, warm_up_steps=0)
+
+
 def batch_shape(spec: DataSpec, seed: int, index: int) -> BatchShape:
     """The shape of batch ``index``: a function of (seed, index) only."""
     generator = _generator(seed, index, -1)
     views = spec.views[int(torch.randint(len(spec.views), (), generator=generator))]
     height, width = spec.sizes[int(torch.randint(len(spec.sizes), (), generator=generator))]
-    return BatchShape(views, spec.targets, height, width, max(1, spec.batch_views // views))
+    return BatchShape(views, spec.targets, height, width, max(1, spec.batch_views // views),
+                      index // spec.batches_per_step)
 
 
 @dataclass
@@ -268,11 +308,87 @@ class RealScenes:
         crops = []
         for _ in range(count):
             images, _ = self.scene(self.names[int(torch.randint(len(self.names), (), generator=generator))])
-            image = images[int(torch.randint(images.shape[0], (), generator=generator))]
-            side = max(8, round(min(image.shape[-2:]) * _uniform(generator, 0.25, 1.0)))
-            top = int(torch.randint(image.shape[-2] - side + 1, (), generator=generator))
-            left = int(torch.randint(image.shape[-1] - side + 1, (), generator=generator))
-            crops.append(image[:, top:top + side, left:left + side])
+            crops.append(random_square_crop(images[int(torch.randint(images.shape[0], (), generator=generator))],
+                                            generator))
+        return crops
+
+
+def random_square_crop(image: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """uint8 [3,h,w] -> uint8 [3,s,s] at a random position, s between 1/4 and all of the shorter side (>= 8)."""
+    side = max(8, round(min(image.shape[-2:]) * _uniform(generator, 0.25, 1.0)))
+    top = int(torch.randint(image.shape[-2] - side + 1, (), generator=generator))
+    left = int(torch.randint(image.shape[-1] - side + 1, (), generator=generator))
+    return image[:, top:top + side, left:left + side]
+
+
+class ChunkScenes:
+    """Scenes of a chunk folder (``.torch`` chunks and ``index.json``, :mod:`codecsplat_warp.data.chunks`), streamed.
+
+    Only ``index.json`` is read up front; a draw reads the chunk holding its scene (the last :data:`CHUNK_CACHE`
+    chunks stay in memory, images JPEG-encoded) and decodes only the frames it uses. Views come from the
+    bounded sampler ``view_sampler`` at the batch's step (pixelSplat / DepthSplat training); a scene with
+    too few frames for the step's smallest context gap is skipped for another draw, as pixelSplat does.
+    Images are resized and cropped as real scenes are (:func:`random_resized_crop`). Cameras get the depth
+    range ``near`` / ``far`` in scene units (chunks store none; the default is DepthSplat's RE10K one).
+    Instances are picklable, so DataLoader workers each keep their own cache.
+    """
+
+    def __init__(self, root, keys: list[str], view_sampler: BoundedSamplerConfig, photometric: bool,
+                 near: float = 0.5, far: float = 100.0):
+        index = load_index(root)
+        if not keys:
+            raise DataError(f"no training scenes in {pathlib.Path(root) / 'index.json'}")
+        self.root = pathlib.Path(root)
+        self.chunk_of = {key: index[key] for key in keys}
+        self.keys = list(keys)
+        self.view_sampler = view_sampler
+        self.photometric = photometric
+        self.near, self.far = near, far
+        self._cache: OrderedDict[pathlib.Path, dict[str, Scene]] = OrderedDict()
+
+    def scene(self, key: str) -> Scene:
+        """The scene ``key`` (images JPEG-encoded, float64 cameras), reading its chunk unless it is cached."""
+        path = self.chunk_of[key]
+        if path not in self._cache:
+            self._cache[path] = {s.key: s for s in read_chunk(path, self.near, self.far)}
+            while len(self._cache) > CHUNK_CACHE:
+                self._cache.popitem(last=False)
+        self._cache.move_to_end(path)
+        scenes = self._cache[path]
+        if key not in scenes:
+            raise DataError(f"{path}: {self.root / 'index.json'} says it holds scene {key!r}, but it does not")
+        return scenes[key]
+
+    def _draw_key(self, generator: torch.Generator) -> str:
+        return self.keys[int(torch.randint(len(self.keys), (), generator=generator))]
+
+    def __call__(self, generator: torch.Generator, shape: BatchShape) -> TrainingSample:
+        sampler = dataclasses.replace(self.view_sampler, num_context_views=shape.views, num_target_views=shape.targets)
+        for _ in range(MAX_SCENE_DRAWS):
+            key = self._draw_key(generator)
+            scene = self.scene(key)
+            try:
+                views = sample_bounded_views(scene.num_views, sampler, shape.step, generator)
+            except DataError:
+                continue
+            frames = list(views.context + views.target)
+            pixels, cams = random_resized_crop(scene.decoded_images(frames), scene.cameras.select(frames),
+                                               shape.height, shape.width, generator)
+            if self.photometric:
+                pixels = photometric_jitter(pixels, generator)
+            cams = cams.to(dtype=torch.float32)
+            V = len(views.context)
+            return TrainingSample(pixels[:V], cams.select(slice(0, V)), pixels[V:], cams.select(slice(V, None)), key)
+        raise DataError(f"{self.root}: {MAX_SCENE_DRAWS} scenes drawn in a row are too short for {shape.views} "
+                        f"context views at step {shape.step}'s context gap {context_gap_bounds(sampler, shape.step)}")
+
+    def photo_crops(self, generator: torch.Generator, count: int) -> list[torch.Tensor]:
+        """``count`` random square crops (uint8 [3,s,s], see :func:`random_square_crop`) of random frames."""
+        crops = []
+        for _ in range(count):
+            scene = self.scene(self._draw_key(generator))
+            frame = int(torch.randint(scene.num_views, (), generator=generator))
+            crops.append(random_square_crop(scene.decoded_images([frame])[0], generator))
         return crops
 
 
@@ -280,10 +396,11 @@ class ProceduralScenes:
     """Procedural scenes (:func:`codecsplat_warp.data.procedural.procedural_scene`), one fresh scene per draw.
 
     Views along the scene's trajectory: context at evenly spaced positions (first and last included),
-    targets in between. ``textures`` (a :class:`RealScenes`) adds crops of its photographs as textures.
+    targets in between. ``textures`` (:class:`RealScenes` or :class:`ChunkScenes`) adds crops of its
+    photographs as textures.
     """
 
-    def __init__(self, textures: RealScenes | None = None, photometric: bool = False):
+    def __init__(self, textures: RealScenes | ChunkScenes | None = None, photometric: bool = False):
         self.textures = textures
         self.photometric = photometric
 
@@ -321,22 +438,40 @@ def batch_source(spec: DataSpec, seed: int, real: SceneSampler | None, procedura
 
 
 MIX_PREFIX = "mix:"
-"""``--data mix:DIR``: procedural scenes (share ``DataSpec.procedural_fraction``) and real scenes under DIR."""
+"""``--data mix:DIR`` / ``mix:chunks:DIR``: procedural scenes (share ``DataSpec.procedural_fraction``) and the
+real or chunk scenes of DIR."""
+
+CHUNKS_PREFIX = "chunks:"
+"""``--data chunks:DIR``: the scenes of a chunk folder (``.torch`` chunks and ``index.json``)."""
 
 
 def make_source(data: str, spec: DataSpec, seed: int, holdout: list[str] | None = None) -> BatchSource:
-    """``procedural``, a directory of real scenes, or ``mix:DIR`` (both) -> a :data:`BatchSource`.
+    """``procedural``, a directory of real scenes, ``chunks:DIR`` (a chunk folder) or ``mix:`` before either
+    of the last two (with procedural scenes) -> a :data:`BatchSource`.
 
-    ``holdout`` names real scenes left out of training (kept for validation); their photographs are never
-    used as procedural textures either.
+    ``holdout`` names real scenes (or chunk scene keys) left out of training (kept for validation); their
+    photographs are never used as procedural textures either.
+
+    Raises:
+        InputError: ``data`` is none of these forms, or a held-out name is not in the data.
+        DataError: a chunk folder that does not exist or lacks a valid ``index.json``, or no scenes left.
     """
     if data == "procedural":
         return batch_source(spec, seed, None, ProceduralScenes(photometric=spec.photometric))
-    real_root = data[len(MIX_PREFIX):] if data.startswith(MIX_PREFIX) else data
-    if not pathlib.Path(real_root).is_dir():
-        raise InputError(f"data must be 'procedural', a directory of scenes or 'mix:DIRECTORY', got {data!r}")
-    real = RealScenes(real_root, training_scenes(real_root, holdout or []), spec.photometric)
-    if not data.startswith(MIX_PREFIX):
+    mixed = data.startswith(MIX_PREFIX)
+    body = data[len(MIX_PREFIX):] if mixed else data
+    if body.startswith(CHUNKS_PREFIX):
+        root = pathlib.Path(body[len(CHUNKS_PREFIX):])
+        if not root.is_dir():
+            raise DataError(f"chunk folder {root} (from --data {data!r}) does not exist")
+        keys = without_holdout(root, sorted(load_index(root)), holdout or [])
+        real = ChunkScenes(root, keys, spec.view_sampler, spec.photometric)
+    else:
+        if not pathlib.Path(body).is_dir():
+            raise InputError("data must be 'procedural', a directory of scenes, 'chunks:DIRECTORY' or either "
+                             f"of the last two after 'mix:', got {data!r}")
+        real = RealScenes(body, training_scenes(body, holdout or []), spec.photometric)
+    if not mixed:
         return batch_source(spec, seed, real, None)
     procedural = ProceduralScenes(real if spec.photo_textures else None, spec.photometric)
     return batch_source(spec, seed, real, procedural)
@@ -344,7 +479,12 @@ def make_source(data: str, spec: DataSpec, seed: int, holdout: list[str] | None 
 
 def training_scenes(root, holdout: list[str]) -> list[str]:
     """Scene folders (with ``cameras.json``) under ``root`` minus ``holdout``; every held-out name must exist."""
-    names = sorted(p.parent.name for p in pathlib.Path(root).glob("*/cameras.json"))
+    return without_holdout(root, sorted(p.parent.name for p in pathlib.Path(root).glob("*/cameras.json")), holdout)
+
+
+def without_holdout(root, names: list[str], holdout: list[str]) -> list[str]:
+    """``names`` (the scenes of ``root``) minus ``holdout``; InputError for a held-out name not among them,
+    DataError when none is left."""
     missing = sorted(set(holdout) - set(names))
     if missing:
         raise InputError(f"held-out scenes not found under {root}: {', '.join(missing)}")

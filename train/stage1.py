@@ -12,6 +12,9 @@ CPU). Resumable checkpoints (see :mod:`train.checkpoint`), TensorBoard logs and 
 Batches (:mod:`train.data`): ``--views 2,3,4,6,8 --sizes 256x256,256x448`` draws a context view count and an
 image size per batch, and ``--batch-views 8`` fills a batch with as many scenes as have 8 context views
 between them (4 scenes of 2 views, 1 of 8); the default is one scene at the preset's view count and size.
+``--data chunks:DIR`` (or ``mix:chunks:DIR``) trains on a folder of RE10K / DL3DV ``.torch`` chunks with
+pixelSplat's bounded view sampler: the context gap widens over DepthSplat's RE10K schedule (25-45 frames at
+step 0 to 45-192 at step 150k), or stays in ``--context-gap MIN,MAX`` frames when that is given.
 ``--mono vgg16`` adds the frozen ImageNet VGG16 prior (weights from ``--mono-weights``, default
 ``lpips_vgg.safetensors`` in the LPIPS weights folder) and ``--init RUN_OR_MODEL_FILE`` warm-starts from the
 weights of a run or a model file whose names and shapes match (the shipped default, say).
@@ -53,7 +56,8 @@ from codecsplat_warp.nn.config import ModelConfig, get_preset
 
 from .checkpoint import (latest_checkpoint, load_checkpoint, load_matching_weights, read_weights,
                          save_checkpoint)
-from .data import BatchSource, DataSpec, StepDataset, TrainingBatch, make_source, parse_sizes, parse_views
+from .data import (BatchSource, DataSpec, StepDataset, TrainingBatch, fixed_context_gap, make_source, parse_sizes,
+                   parse_views)
 
 REPO_ROOT = pathlib.Path(__file__).resolve().parents[1]
 DEFAULT_LPIPS_DIR = REPO_ROOT.parent / "shared" / "weights"
@@ -89,6 +93,7 @@ class TrainConfig:
     procedural_fraction: float = 0.5
     photo_textures: int = 0
     photometric: int = 0
+    context_gap: str = ""
     mono: str = ""
     mono_weights: str = ""
     init: str = ""
@@ -267,15 +272,18 @@ def _lpips_dir(config: TrainConfig) -> str:
     return os.environ.get(WEIGHTS_ENV) or str(DEFAULT_LPIPS_DIR)
 
 
-def data_spec(config: TrainConfig, model_config: ModelConfig) -> DataSpec:
-    """The batch drawing of ``config`` (``--views``, ``--sizes``, ``--batch-views`` and the augmentation flags);
-    unset ones default to one scene at the model preset's view count and size."""
+def data_spec(config: TrainConfig, model_config: ModelConfig, world: int = 1) -> DataSpec:
+    """The batch drawing of ``config`` (``--views``, ``--sizes``, ``--batch-views``, ``--context-gap`` and the
+    augmentation flags) for ``world`` processes; unset ones default to one scene at the model preset's view
+    count and size and, for chunk scenes, DepthSplat's RE10K context gap schedule."""
     base = DataSpec.of_model(model_config)
     return DataSpec(views=parse_views(config.views) if config.views else base.views,
                     sizes=parse_sizes(config.sizes) if config.sizes else base.sizes, targets=base.targets,
                     batch_views=config.batch_views or base.batch_views,
                     procedural_fraction=config.procedural_fraction, photo_textures=bool(config.photo_textures),
-                    photometric=bool(config.photometric))
+                    photometric=bool(config.photometric),
+                    view_sampler=fixed_context_gap(config.context_gap) if config.context_gap else base.view_sampler,
+                    batches_per_step=config.accumulate * world)
 
 
 def stage1_model_config(config: TrainConfig) -> ModelConfig:
@@ -301,7 +309,7 @@ def train(config: TrainConfig, source: BatchSource | None = None, model_config: 
     if device.type == "cuda" and world > 1:
         device = torch.device("cuda", local_rank)
     model_config = model_config or stage1_model_config(config)
-    source = source or make_source(config.data, data_spec(config, model_config), config.seed,
+    source = source or make_source(config.data, data_spec(config, model_config, world), config.seed,
                                    [n for n in config.holdout.split(",") if n])
     out = pathlib.Path(config.out)
     torch.manual_seed(config.seed + rank)
