@@ -15,6 +15,7 @@ from codecsplat_warp.errors import DataError, InputError
 from codecsplat_warp.nn.config import get_preset
 from train.data import CHUNK_CACHE, ChunkScenes, DataSpec, batch_shape, fixed_context_gap, make_source
 from train.stage1 import METRICS_FILE, TrainConfig, data_spec, parse_args, train
+from train.stage2 import parse_args as stage2_args
 
 TINY = get_preset("tiny")
 GAP = "2,6"
@@ -86,6 +87,8 @@ def test_context_gap_follows_the_step_of_the_batch_index(chunk_root):
     config = parse_args(["--preset", "tiny", "--context-gap", GAP, "--accumulate", "3"])
     assert data_spec(config, TINY, world=2).batches_per_step == 6
     assert data_spec(config, TINY).view_sampler == fixed_context_gap(GAP)
+    stage2 = stage2_args(["--data", f"mix:chunks:{chunk_root}", "--context-gap", GAP])  # stage 2 shares the flags
+    assert data_spec(stage2, TINY).view_sampler == fixed_context_gap(GAP)
     with pytest.raises(InputError, match="MIN,MAX"):
         fixed_context_gap("45")
     with pytest.raises(InputError, match="MIN <= MAX"):
