@@ -4,6 +4,7 @@ sampler's step schedule, typed errors and exact resume of stage 1."""
 from __future__ import annotations
 
 import json
+import pickle
 
 import pytest
 import torch
@@ -66,7 +67,7 @@ def test_chunk_source_gives_the_same_batch_for_the_same_index(chunk_root):
     _assert_same(make_source(f"chunks:{chunk_root}", _spec(), seed=5)(7), first(7))
 
 
-def test_chunk_scenes_keep_a_few_chunks_and_draw_bounded_views(chunk_root):
+def test_chunk_scenes_keep_a_few_chunks_and_pickle_for_workers(chunk_root):
     keys = sorted(_index(chunk_root))
     scenes = ChunkScenes(chunk_root, keys, fixed_context_gap(GAP), photometric=False)
     shape = batch_shape(_spec(views=(2,)), 0, 0)
@@ -76,6 +77,9 @@ def test_chunk_scenes_keep_a_few_chunks_and_draw_bounded_views(chunk_root):
         centres = sample.context_cameras.centers
         assert sample.context_images.shape == (2, 3, 32, 48) and centres.shape == (2, 3)
         assert sample.key in keys and not sample.key.endswith("-4")
+    copy = pickle.loads(pickle.dumps(scenes))  # as a DataLoader worker gets it
+    again = copy(torch.Generator().manual_seed(5), shape)
+    assert again.key == sample.key and torch.equal(again.target_images, sample.target_images)
 
 
 def test_context_gap_follows_the_step_of_the_batch_index(chunk_root):
