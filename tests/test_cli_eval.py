@@ -11,7 +11,7 @@ from codecsplat_warp.cameras import Cameras, intrinsics_matrix
 from codecsplat_warp.errors import DataError, InputError
 from codecsplat_warp.data import split_context_targets
 from codecsplat_warp.eval.evaluate import EvalConfig, evaluate
-from codecsplat_warp.eval.protocols import find_scenes, select_scenes
+from codecsplat_warp.eval.protocols import PROTOCOLS, find_scenes, folder_index_plan, select_scenes
 from codecsplat_warp.eval.report import Row, format_bytes, summarize, table1, table2
 from test_cli_commands import write_scene
 
@@ -60,6 +60,20 @@ def test_find_scenes(tmp_path):
     assert [p.name for p in select_scenes(found, ("b",))] == ["b"]
     with pytest.raises(DataError, match="c not found; found a, b"):
         select_scenes(found, ("b", "c"))
+
+
+def test_scenes_pick_entries_of_a_folder_index(tmp_path):
+    write_scene(tmp_path / "root" / "a", seed=1, views=4)
+    write_scene(tmp_path / "root" / "b", seed=2, views=4)
+    index = tmp_path / "index.json"
+    index.write_text(json.dumps({"a": {"context": [0, 2], "target": [1]}, "b": {"context": [0, 3], "target": [2]}}))
+    found = find_scenes(tmp_path / "root")
+    assert [k[0] for k in folder_index_plan(found, index, PROTOCOLS["scene"]).keys] == ["a", "b"]
+    assert [k[0] for k in folder_index_plan(found, index, PROTOCOLS["scene"], ("b",)).keys] == ["b"]
+    with pytest.raises(DataError, match="selects no scene"):
+        folder_index_plan(found, index, PROTOCOLS["scene"], ("c",))
+    with pytest.raises(DataError, match="not in the data"):  # without --scenes every indexed scene must exist
+        folder_index_plan(found[:1], index, PROTOCOLS["scene"])
 
 
 @pytest.mark.parametrize("changes,match", [({"protocol": "llff"}, "unknown protocol"),

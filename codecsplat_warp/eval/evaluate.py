@@ -296,9 +296,9 @@ def _plan(config: EvalConfig, protocol: Protocol, model) -> SamplePlan:
             raise InputError(f"{config.data} is a chunk folder: give the evaluation index of its scenes with --index "
                              "(e.g. DepthSplat's assets/evaluation_index_re10k.json)")
         return chunk_plan(config.data, config.index, protocol, config.scenes)
+    if config.index:  # --scenes picks entries of the index
+        return folder_index_plan(find_scenes(config.data), config.index, protocol, config.scenes)
     paths = select_scenes(find_scenes(config.data), tuple(sorted(config.scenes)))
-    if config.index:
-        return folder_index_plan(paths, config.index, protocol)
     samples, skipped = [], []
     for path in paths:
         try:

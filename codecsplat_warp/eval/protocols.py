@@ -162,17 +162,30 @@ def index_samples(paths: list[pathlib.Path], index_file, protocol: Protocol) -> 
     return list(folder_index_plan(paths, index_file, protocol).load(0))
 
 
-def folder_index_plan(paths: list[pathlib.Path], index_file, protocol: Protocol) -> SamplePlan:
+def index_selections(index_file, scenes: Collection[str] = ()) -> dict[str, ViewSelection]:
+    """The entries of an evaluation index file (:func:`codecsplat_warp.data.load_evaluation_index`), only those of
+    ``scenes`` when given. Raises DataError when ``scenes`` names a key the index does not select."""
+    selections = load_evaluation_index(index_file)
+    if scenes:
+        unknown = sorted(set(scenes) - set(selections))
+        if unknown:
+            raise DataError(f"{index_file} selects no scene {name_list(unknown)}")
+        selections = {k: v for k, v in selections.items() if k in set(scenes)}
+    return selections
+
+
+def folder_index_plan(paths: list[pathlib.Path], index_file, protocol: Protocol,
+                      scenes: Collection[str] = ()) -> SamplePlan:
     """One sample per entry of an evaluation index file (``{"<scene folder>": {"context": [...], "target":
     [...]}}``, null entries skipped, see :func:`codecsplat_warp.data.load_evaluation_index`) among the scene
     folders ``paths``, preprocessed to the protocol, in the index's order; each scene is loaded when its sample
-    is due.
+    is due. ``scenes`` keeps only those entries of the index (all when empty).
 
     Raises:
-        DataError: the index names no scene of ``paths``, or some it names are missing (checked at once); a
-            frame the scene does not have (when that scene is loaded).
+        DataError: ``scenes`` names a key the index does not select; the index names no scene of ``paths``, or
+            some it names are missing (checked at once); a frame the scene does not have (when that scene is loaded).
     """
-    selections = load_evaluation_index(index_file)
+    selections = index_selections(index_file, scenes)
     by_name = {p.name: p for p in paths}
     _check_index_scenes(index_file, selections, by_name, "the data")
     keys = [(key, sel.context, sel.target) for key, sel in selections.items()]
@@ -216,12 +229,7 @@ def chunk_plan(root, index_file, protocol: Protocol, scenes: Collection[str] = (
                          "use --protocol re10k or dl3dv")
     root = pathlib.Path(root)
     chunks = load_index(root)
-    selections = load_evaluation_index(index_file)
-    if scenes:
-        unknown = sorted(set(scenes) - set(selections))
-        if unknown:
-            raise DataError(f"{index_file} selects no scene {name_list(unknown)}")
-        selections = {k: v for k, v in selections.items() if k in set(scenes)}
+    selections = index_selections(index_file, scenes)
     _check_index_scenes(index_file, selections, chunks, f"{root / 'index.json'}")
     order = {key: i for i, key in enumerate(selections)}
     keys = sorted(((key, sel.context, sel.target) for key, sel in selections.items()),
