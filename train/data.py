@@ -263,6 +263,19 @@ def random_resized_crop(images: torch.Tensor, cameras: Cameras, height: int, wid
     return crop, cameras.rescaled(scaled_w, scaled_h).cropped(left, top, width, height)
 
 
+def cropped_sample(images: torch.Tensor, cameras: Cameras, context: int, shape: BatchShape,
+                   generator: torch.Generator, photometric: bool, key: str) -> TrainingSample:
+    """uint8 [N,3,h,w] views (the first ``context`` of them context, the rest targets) and their cameras ->
+    a :class:`TrainingSample` at the batch's size: :func:`random_resized_crop`, then :func:`photometric_jitter`
+    when ``photometric``; float32 cameras."""
+    pixels, cams = random_resized_crop(images, cameras, shape.height, shape.width, generator)
+    if photometric:
+        pixels = photometric_jitter(pixels, generator)
+    cams = cams.to(dtype=torch.float32)
+    return TrainingSample(pixels[:context], cams.select(slice(0, context)), pixels[context:],
+                          cams.select(slice(context, None)), key)
+
+
 # --------------------------------------------------------------------------------------------------
 # Scene samplers
 class RealScenes:
@@ -295,12 +308,8 @@ class RealScenes:
         spread = int(torch.randint(shape.views + shape.targets + 1, (), generator=generator))
         context, targets = split_context_targets(cameras, anchor, shape.views, shape.targets, spread)
         views = context + targets
-        pixels, cams = random_resized_crop(images[views], cameras.select(views), shape.height, shape.width, generator)
-        if self.photometric:
-            pixels = photometric_jitter(pixels, generator)
-        cams = cams.to(dtype=torch.float32)
-        V = len(context)
-        return TrainingSample(pixels[:V], cams.select(slice(0, V)), pixels[V:], cams.select(slice(V, None)), name)
+        return cropped_sample(images[views], cameras.select(views), len(context), shape, generator, self.photometric,
+                              name)
 
     def photo_crops(self, generator: torch.Generator, count: int) -> list[torch.Tensor]:
         """``count`` random square crops (uint8 [3,s,s], s between 1/4 and all of the shorter side) of random
@@ -372,13 +381,8 @@ class ChunkScenes:
             except DataError:
                 continue
             frames = list(views.context + views.target)
-            pixels, cams = random_resized_crop(scene.decoded_images(frames), scene.cameras.select(frames),
-                                               shape.height, shape.width, generator)
-            if self.photometric:
-                pixels = photometric_jitter(pixels, generator)
-            cams = cams.to(dtype=torch.float32)
-            V = len(views.context)
-            return TrainingSample(pixels[:V], cams.select(slice(0, V)), pixels[V:], cams.select(slice(V, None)), key)
+            return cropped_sample(scene.decoded_images(frames), scene.cameras.select(frames), len(views.context),
+                                  shape, generator, self.photometric, key)
         raise DataError(f"{self.root}: {MAX_SCENE_DRAWS} scenes drawn in a row are too short for {shape.views} "
                         f"context views at step {shape.step}'s context gap {context_gap_bounds(sampler, shape.step)}")
 

@@ -8,7 +8,8 @@ from another model's (the shipped default, say: continuing its stage 2 on a back
 further). ``--codec-latent-channels 16,24,32,16 --codec-finest-stride 2`` gives the new run's codec other
 latent levels than the init run's; a ``--codec-init`` codec with the same levels minus the finer ones is then
 grown into it (:meth:`LatentCodec.grow_from`). Only the codec, the depth head and R_post train (``--trainable
-PREFIX,...`` narrows that to the parameters named so, e.g. a grown codec's new levels); everything else is frozen. Per step, lambda is drawn log-uniformly from [16, 1024] and the loss is
+PREFIX,...`` narrows that to the parameters named so, e.g. a grown codec's new levels); everything else is
+frozen. Per step, lambda is drawn log-uniformly from [16, 1024] and the loss is
 
     (lambda / 1024) * [D_render + gamma * |S - S_enc|_1 + alpha(step) * |F^_c - F_c|^2 / |F_c|^2] + beta * R
 
@@ -181,13 +182,16 @@ def build_stage2_model(model_config: ModelConfig, config: Stage2Config) -> Codec
 def train_only(model: CodecSplat, prefixes: list[str]) -> None:
     """Freeze every stage-2 parameter whose name starts with none of ``prefixes`` (``codec.top_down.blocks.3``,
     ``depth_head``, ...). Raises InputError for a prefix that names no stage-2 parameter."""
+    def named(name: str, prefix: str) -> bool:
+        return name == prefix or name.startswith(prefix + ".")
+
     names = [n for n, p in model.named_parameters() if p.requires_grad]
     for prefix in prefixes:
-        if not any(n == prefix or n.startswith(prefix + ".") for n in names):
+        if not any(named(n, prefix) for n in names):
             raise InputError(f"--trainable {prefix!r} names no stage-2 parameter (they start with "
                              f"{', '.join(model.CODEC_MODULE_NAMES)})")
     for name, parameter in model.named_parameters():
-        if not any(name == p or name.startswith(p + ".") for p in prefixes):
+        if not any(named(name, p) for p in prefixes):
             parameter.requires_grad_(False)
 
 
@@ -218,29 +222,33 @@ def load_codec_weights(model: CodecSplat, source) -> None:
         try:
             getattr(model, name).load_state_dict(tensors)
         except RuntimeError as exc:
-            if name != "codec" or not _grow_codec(model, tensors):
-                raise DataError(f"--codec-init {source} holds no {name} of this model's shapes: {exc}") from None
+            failed = f"--codec-init {source} holds no {name} of this model's shapes: {exc}"
+            if name != "codec":
+                raise DataError(failed) from None
+            reason = _grow_codec(model, tensors)
+            if reason:
+                raise DataError(f"{failed}; nor one that grows into it: {reason}") from None
 
 
-def _grow_codec(model: CodecSplat, state: dict[str, torch.Tensor]) -> bool:
-    """Grow the codec ``state`` (of a codec with fewer, coarser levels) into ``model.codec``; whether it fit.
-    The source's levels are read off its tensors: the channels from each level's gain, the finest stride
-    from its number of synthesis upsamplings."""
+def _grow_codec(model: CodecSplat, state: dict[str, torch.Tensor]) -> str:
+    """Grow the codec ``state`` (of a codec with fewer, coarser levels) into ``model.codec``; returns why it
+    does not fit, or "" when it did. The source's levels are read off its tensors: the channels from each
+    level's gain, the finest stride from its number of synthesis upsamplings."""
     levels = sorted({int(k.split(".")[2]) for k in state if k.startswith("top_down.blocks.")})
     ups = {int(k.split(".")[2]) for k in state if k.startswith("synthesis.ups.")}
     if not levels or not ups:
-        return False
+        return "it holds no latent levels or synthesis"
     source = dataclasses.replace(
         model.config, codec_latent_channels=tuple(state[f"top_down.blocks.{l}.gain.bias"].numel() for l in levels),
         codec_finest_stride=2 ** len(ups))
     try:
         fresh = model.codec.grow_from(state, source)
-    except (InputError, RuntimeError):
-        return False
+    except (InputError, RuntimeError) as exc:
+        return str(exc)
     print(f"stage2: grew the --codec-init codec (levels {source.codec_latent_channels}, finest stride "
           f"{source.codec_finest_stride}) into {model.config.codec_latent_channels} at stride "
           f"{model.config.codec_finest_stride}; {len(fresh)} tensors start fresh")
-    return True
+    return ""
 
 
 def run_model_config(config: Stage2Config) -> ModelConfig:
