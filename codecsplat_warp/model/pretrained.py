@@ -5,9 +5,9 @@ A pretrained file is ONE safetensors file: every weight in float32, or in float1
 metadata the format name, the :class:`~codecsplat_warp.nn.config.ModelConfig` as JSON, the SHA-256 of the
 weights (checked on load) and the model identifier. Loading gives a float32 model either way. The re10k/dl3dv
 presets hold about 4.1 M parameters, i.e. 15.7 MiB in float32 (7.9 MiB in float16), within the 16 MiB a file
-may have. The shipped default at :data:`DEFAULT_CHECKPOINT` (its codec grown by a fourth latent level, 4.2 M
-parameters) is stored in float16 (``python -m train.export ... --half``, 8.1 MiB; a model with the VGG16 mono
-prior holds about 5.9 M parameters, 11.3 MiB in float16, which would not fit in float32).
+may have. The shipped default at :data:`DEFAULT_CHECKPOINT` (three latent levels, 4.1 M parameters) is stored in
+float16 (``python -m train.export ... --half``, 7.9 MiB; a codec grown by a fourth latent level holds 4.2 M, a
+model with the VGG16 mono prior about 5.9 M parameters, 11.3 MiB in float16, which would not fit in float32).
 
 The model identifier (:func:`~codecsplat_warp.model.codecsplat.model_id`)
 hashes the weights as float32 values, so a float16 file and the float32 model it loads into share it.
