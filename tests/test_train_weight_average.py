@@ -1,12 +1,21 @@
-"""Weight average (EMA) of training runs: the update rule."""
+"""Weight average (EMA) of training runs: the update rule, its checkpoints, checkpoints without one."""
 
 from __future__ import annotations
+
+import json
 
 import pytest
 import torch
 
-from codecsplat_warp.errors import InputError
+from codecsplat_warp.errors import DataError, InputError
+from codecsplat_warp.model import CodecSplat
+from codecsplat_warp.nn.config import get_preset
+from train import stage1, stage2
+from train.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from train.stage1 import TrainConfig, make_optimizer
 from train.weight_average import WeightAverage, warmed_up_decay
+
+TINY = get_preset("tiny")
 
 
 def test_update_averages_only_trainable_parameters_with_the_warmed_up_decay():
@@ -28,3 +37,38 @@ def test_update_averages_only_trainable_parameters_with_the_warmed_up_decay():
     assert average.updates == 12 and warmed_up_decay(0.5, 11) == 0.5 and warmed_up_decay(0.999, 0) == 0.1
     with pytest.raises(InputError, match="decay"):
         WeightAverage(model, decay=1.0)
+    with pytest.raises(InputError, match="ema-decay"):
+        stage1.parse_args(["--ema-decay", "1"])
+    assert stage1.parse_args([]).ema_decay == 0.999 and stage2.parse_args(["--ema-decay", "0"]).ema_decay == 0.0
+
+
+def _run(folder, codec: bool, with_average: bool) -> tuple[CodecSplat, WeightAverage]:
+    """A run folder (config.json + one checkpoint) whose weight average differs from its raw weights by 1;
+    the checkpoint keeps the average only ``with_average`` (one written before the average existed)."""
+    torch.manual_seed(5)
+    model = CodecSplat(TINY, codec=codec)
+    optimizer, scheduler = make_optimizer(model, TrainConfig(steps=1))
+    average = WeightAverage(model, 0.9)
+    with torch.no_grad():
+        for parameter in model.parameters():
+            parameter.add_(1.0)
+    save_checkpoint(folder, 1, model, optimizer, scheduler, {}, average=average if with_average else None)
+    (folder / "config.json").write_text(json.dumps({"train": {}, "model": TINY.to_dict()}))
+    return model, average
+
+
+def test_resuming_a_checkpoint_without_average_starts_it_from_the_checkpoint_weights(tmp_path, capsys):
+    model, _ = _run(tmp_path / "run", codec=False, with_average=False)
+    clone = CodecSplat(TINY)
+    optimizer, scheduler = make_optimizer(clone, TrainConfig(steps=1))
+    average = WeightAverage(clone, 0.9)
+    assert load_checkpoint(latest_checkpoint(tmp_path / "run"), clone, optimizer, scheduler, average) == 1
+    assert "no weight average" in capsys.readouterr().out and average.updates == 0
+    for name, value in average.averages.items():
+        assert torch.equal(value, model.state_dict()[name]), name
+    frozen = CodecSplat(TINY)
+    frozen.depth_head.requires_grad_(False)  # other trainable parameters than the checkpoint's average
+    _run(tmp_path / "new", codec=False, with_average=True)
+    with pytest.raises(DataError, match="other parameters"):
+        load_checkpoint(latest_checkpoint(tmp_path / "new"), frozen, *make_optimizer(frozen, TrainConfig(steps=1)),
+                        WeightAverage(frozen, 0.9))

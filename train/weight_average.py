@@ -1,6 +1,7 @@
 """Exponential moving average (EMA) of a model's trainable weights, the weights a run is to be evaluated and
-exported with: adjacent raw checkpoints of small-batch Adam runs differ by
-most of a dB on held-out scenes, their average much less."""
+exported with. Adjacent raw checkpoints of small-batch Adam runs can differ by
+most of a dB on held-out scenes (a stage-1 run: 15.91 dB at step 13,250, 16.78 dB at step 13,333); an average
+over the last ~1 / (1 - decay) steps is meant to smooth that out."""
 
 from __future__ import annotations
 
@@ -50,7 +51,7 @@ class WeightAverage:
         Raises DataError when the names differ (a checkpoint of other trainable parameters)."""
         if set(averages) != set(self.averages):
             raise DataError(f"the saved weight average holds other parameters than the trainable ones: "
-                             f"{sorted(set(averages) ^ set(self.averages))[:5]}")
+                            f"{sorted(set(averages) ^ set(self.averages))[:5]}")
         for name, average in self.averages.items():
             average.copy_(averages[name])
         self.updates = updates
