@@ -1,4 +1,5 @@
-"""Weight average (EMA) of training runs: the update rule, its checkpoints, checkpoints without one."""
+"""Weight average (EMA) of training runs: the update rule, its checkpoints, and the runs' users (export,
+validation, stage 2's warm starts) reading it in place of the raw weights; checkpoints without one."""
 
 from __future__ import annotations
 
@@ -6,13 +7,16 @@ import json
 
 import pytest
 import torch
+from safetensors.torch import load_file
 
 from codecsplat_warp.errors import DataError, InputError
 from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.nn.config import get_preset
 from train import stage1, stage2
 from train.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from train.export import export
 from train.stage1 import TrainConfig, make_optimizer
+from train.validate import load_run
 from train.weight_average import WeightAverage, warmed_up_decay
 
 TINY = get_preset("tiny")
@@ -55,6 +59,34 @@ def _run(folder, codec: bool, with_average: bool) -> tuple[CodecSplat, WeightAve
     save_checkpoint(folder, 1, model, optimizer, scheduler, {}, average=average if with_average else None)
     (folder / "config.json").write_text(json.dumps({"train": {}, "model": TINY.to_dict()}))
     return model, average
+
+
+@pytest.mark.parametrize("with_average", [True, False])
+def test_export_and_validation_use_the_weight_average_where_the_checkpoint_keeps_one(tmp_path, with_average):
+    model, average = _run(tmp_path / "run", codec=True, with_average=with_average)
+    export(tmp_path / "run", tmp_path / "model.safetensors", half=False)
+    exported = load_file(str(tmp_path / "model.safetensors"))
+    loaded, step = load_run(tmp_path / "run", "cpu")
+    assert step == 1
+    for name, raw in model.state_dict().items():
+        wanted = average.averages[name] if with_average and name in average.averages else raw
+        assert torch.equal(exported[name].float(), wanted), name
+        assert torch.equal(loaded.state_dict()[name], wanted), name
+
+
+def test_stage2_warm_starts_read_the_weight_average(tmp_path):
+    _, average = _run(tmp_path / "s1", codec=False, with_average=True)
+    _, donor_average = _run(tmp_path / "donor", codec=True, with_average=True)
+    config = stage2.Stage2Config(init=str(tmp_path / "s1"), out=str(tmp_path / "s2"), codec_init=str(tmp_path / "donor"))
+    weights = stage2.build_stage2_model(TINY, config).state_dict()
+    stage2_names = tuple(name + "." for name in CodecSplat.CODEC_MODULE_NAMES)
+    for name, value in average.averages.items():  # --init: backbone and GS head
+        if not name.startswith(stage2_names):
+            assert torch.equal(weights[name], value), name
+    from_donor = [name for name in donor_average.averages if name.startswith(stage2_names)]
+    assert any(name.startswith("codec.") for name in from_donor)
+    for name in from_donor:  # --codec-init: codec, depth head, R_post
+        assert torch.equal(weights[name], donor_average.averages[name]), name
 
 
 def test_resuming_a_checkpoint_without_average_starts_it_from_the_checkpoint_weights(tmp_path, capsys):

@@ -13,6 +13,9 @@ Layout of ``<run>/checkpoints/``::
 Every file is written to a temporary name and moved into place with ``os.replace``; the checkpoint
 folder is assembled under a temporary name and renamed when complete, and ``latest`` is replaced last,
 so a run killed at any moment resumes from the last complete checkpoint.
+
+Resuming (:func:`load_checkpoint`) reads the raw weights; everything that uses a run's weights (validation,
+export, warm starts) reads :func:`weights_for_use`, the weight average where the checkpoint has one.
 """
 
 from __future__ import annotations
@@ -222,9 +225,21 @@ def _read_index(folder: pathlib.Path) -> dict:
     return index
 
 
+def weights_for_use(folder) -> dict[str, torch.Tensor]:
+    """A checkpoint's weights for use rather than for resuming (CPU tensors, by state-dict name): the raw
+    weights with the weight average's float32 values in place of the parameters it holds, when it has one."""
+    folder = pathlib.Path(folder)
+    index = _read_index(folder)
+    weights = _read_shards(folder, index["model"])
+    if "ema" in index:
+        weights.update(_read_shards(folder, index["ema"]))
+    return weights
+
+
 def read_weights(source) -> dict[str, torch.Tensor]:
-    """Model weights (float32, CPU) from a checkpoint folder, a run folder's newest checkpoint or a pretrained
-    model file (:func:`codecsplat_warp.model.pretrained.save_pretrained`, e.g. the shipped default).
+    """Model weights (float32, CPU) from a checkpoint folder, a run folder's newest checkpoint (both as
+    :func:`weights_for_use`) or a pretrained model file (:func:`codecsplat_warp.model.pretrained.save_pretrained`,
+    e.g. the shipped default).
 
     Raises:
         DataError: ``source`` is neither a checkpoint, a run with one nor a readable safetensors file.
@@ -234,7 +249,7 @@ def read_weights(source) -> dict[str, torch.Tensor]:
         folder = source if (source / "checkpoint.json").is_file() else latest_checkpoint(source)
         if folder is None:
             raise DataError(f"{source}: no checkpoint there (expected a run folder with checkpoints/)")
-        tensors = _read_shards(folder, _read_index(folder)["model"])
+        tensors = weights_for_use(folder)
     elif source.is_file():
         try:
             tensors = load_file(str(source))

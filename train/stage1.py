@@ -6,7 +6,8 @@ that stage 2 starts with one; see :class:`codecsplat_warp.model.CodecSplat`). Ad
 0.01), linear warm-up then cosine decay to 10 %, gradient-norm clipping, bf16 autocast on CUDA (fp32 on
 CPU). After every optimiser step an exponential moving average of the trainable weights is updated
 (``--ema-decay``, default 0.999, warmed up as :func:`train.weight_average.warmed_up_decay`; 0 keeps none): it is
-saved with each checkpoint and continues on resume. Resumable checkpoints (see :mod:`train.checkpoint`),
+saved with each checkpoint, continues on resume, and is what validation, export and warm starts from the run
+use (:func:`train.checkpoint.weights_for_use`). Resumable checkpoints (see :mod:`train.checkpoint`),
 TensorBoard logs and a tqdm bar under ``--out``.
 
     python -m train.stage1 --preset re10k --data procedural --steps 100000 --out runs/stage1-re10k

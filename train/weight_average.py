@@ -1,5 +1,5 @@
-"""Exponential moving average (EMA) of a model's trainable weights, the weights a run is to be evaluated and
-exported with. Adjacent raw checkpoints of small-batch Adam runs can differ by
+"""Exponential moving average (EMA) of a model's trainable weights, the weights a run is evaluated and exported
+with (:func:`train.checkpoint.weights_for_use`). Adjacent raw checkpoints of small-batch Adam runs can differ by
 most of a dB on held-out scenes (a stage-1 run: 15.91 dB at step 13,250, 16.78 dB at step 13,333); an average
 over the last ~1 / (1 - decay) steps is meant to smooth that out."""
 
