@@ -68,6 +68,26 @@ def test_resumed_run_gives_the_same_next_step_loss(tmp_path):
     assert resumed["loss"] == pytest.approx(direct["loss"], rel=1e-5)
     assert (tmp_path / "a" / "checkpoints" / "step-00000003" / "checkpoint.json").is_file()
     assert list((tmp_path / "a" / "tensorboard").glob("events.*"))
+    assert_same_weight_average(tmp_path / "a", tmp_path / "b", updates=3)
+
+
+def assert_same_weight_average(resumed, direct, updates: int) -> None:
+    """The newest checkpoints of a resumed and an uninterrupted run hold the same weight average (after
+    ``updates`` updates), one that differs from the raw weights."""
+    import json
+
+    from safetensors.torch import load_file
+
+    folders = [latest_checkpoint(run) for run in (resumed, direct)]
+    indices = [json.loads((folder / "checkpoint.json").read_text()) for folder in folders]
+    assert [index["ema"]["updates"] for index in indices] == [updates, updates]
+    averages = [{k: v for f in folder.glob("ema-*.safetensors") for k, v in load_file(str(f)).items()}
+                for folder in folders]
+    assert averages[0] and averages[0].keys() == averages[1].keys()
+    for name, value in averages[0].items():
+        torch.testing.assert_close(value, averages[1][name], rtol=1e-6, atol=1e-7, msg=name)
+    raw = {k: v for f in folders[0].glob("model-*.safetensors") for k, v in load_file(str(f)).items()}
+    assert any(not torch.equal(value, raw[name]) for name, value in averages[0].items())
 
 
 def test_lr_schedule_and_cli():

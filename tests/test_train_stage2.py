@@ -19,6 +19,7 @@ from codecsplat_warp.model.pretrained import save_pretrained
 from train.checkpoint import latest_checkpoint, load_model_weights, save_checkpoint
 from train.data import DataSpec, make_source
 from train.stage1 import METRICS_FILE, TrainConfig, make_optimizer
+from test_train_stage1 import assert_same_weight_average
 from train.stage2 import (
     Stage2Config, build_stage2_model, parse_args, rate_ramp, rate_weight, run_model_config, sample_lambda, train,
 )
@@ -135,6 +136,7 @@ def test_resumed_run_gives_the_same_next_step_loss_and_logs_coded_rate(tmp_path)
     direct = train(Stage2Config(out=str(tmp_path / "b"), steps=3, **common), progress=False)
     assert (resumed["resumed_from"], direct["resumed_from"], resumed["step"]) == (2, 0, 3)
     assert resumed["loss"] == pytest.approx(direct["loss"], rel=1e-5)
+    assert_same_weight_average(tmp_path / "a", tmp_path / "b", updates=3)
     records = [json.loads(line) for line in (tmp_path / "a" / METRICS_FILE).read_text().splitlines()]
     assert [r["step"] for r in records] == [1, 2, 3]
     coded = records[1]

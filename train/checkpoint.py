@@ -4,6 +4,8 @@ Layout of ``<run>/checkpoints/``::
 
     step-00001000/model-00000.safetensors ...   model weights (tensors larger than a shard are split)
     step-00001000/optim-00000.safetensors ...   optimizer tensors (AdamW exp_avg, exp_avg_sq, step)
+    step-00001000/ema-00000.safetensors ...     weight average of the trainable parameters (float32; runs with
+                                                --ema-decay > 0; its update count is in checkpoint.json)
     step-00001000/trainer.pt                    param groups, scheduler, RNG states, step, config (small)
     step-00001000/checkpoint.json               index: files, split tensors, step; written last
     latest                                      name of the newest complete checkpoint
@@ -11,6 +13,9 @@ Layout of ``<run>/checkpoints/``::
 Every file is written to a temporary name and moved into place with ``os.replace``; the checkpoint
 folder is assembled under a temporary name and renamed when complete, and ``latest`` is replaced last,
 so a run killed at any moment resumes from the last complete checkpoint.
+
+Resuming (:func:`load_checkpoint`) reads the raw weights; everything that uses a run's weights (validation,
+export, warm starts) reads :func:`weights_for_use`, the weight average where the checkpoint has one.
 """
 
 from __future__ import annotations
@@ -26,6 +31,8 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from codecsplat_warp.errors import DataError
+
+from .weight_average import WeightAverage
 
 MAX_FILE_BYTES = 16 * 1024 * 1024
 """Largest checkpoint file (so checkpoints move between machines in small pieces)."""
@@ -131,12 +138,14 @@ def _read_shards(folder: pathlib.Path, index: dict) -> dict[str, torch.Tensor]:
 
 
 def save_checkpoint(run_dir, step: int, model: torch.nn.Module, optimizer, scheduler, extra: dict,
-                    keep: int = 2, max_bytes: int = MAX_FILE_BYTES) -> pathlib.Path:
+                    keep: int = 2, max_bytes: int = MAX_FILE_BYTES,
+                    average: WeightAverage | None = None) -> pathlib.Path:
     """Write the checkpoint of ``step`` under ``run_dir/checkpoints`` and keep the newest ``keep``.
 
     Args:
         model: the bare module (not the DDP wrapper).
         extra: JSON-able values stored with it (e.g. the configs).
+        average: the run's weight average, if it keeps one.
     Returns:
         the checkpoint folder.
     """
@@ -154,6 +163,8 @@ def save_checkpoint(run_dir, step: int, model: torch.nn.Module, optimizer, sched
         "optim": _write_shards(tmp, "optim", optim_tensors, max_bytes),
         "extra": extra,
     }
+    if average is not None:
+        index["ema"] = {**_write_shards(tmp, "ema", average.averages, max_bytes), "updates": average.updates}
     trainer = {"optimizer": optim_plain, "scheduler": scheduler.state_dict(), "rng": _rng_state()}
     _atomic_write(tmp / "trainer.pt", lambda p: torch.save(trainer, p))
     _atomic_write(tmp / "checkpoint.json", lambda p: p.write_text(json.dumps(index, indent=1)))
@@ -186,10 +197,17 @@ def load_model_weights(folder, model: torch.nn.Module) -> dict:
     return index
 
 
-def load_checkpoint(folder, model: torch.nn.Module, optimizer, scheduler) -> int:
-    """Restore model, optimizer, scheduler and RNG states; returns the step the checkpoint was taken after."""
+def load_checkpoint(folder, model: torch.nn.Module, optimizer, scheduler, average: WeightAverage | None = None) -> int:
+    """Restore model, optimizer, scheduler and RNG states, and ``average`` (when given) from the checkpoint's
+    weight average, or from its raw weights when it has none (written without one, e.g. before --ema-decay);
+    returns the step the checkpoint was taken after."""
     folder = pathlib.Path(folder)
     index = load_model_weights(folder, model)
+    if average is not None and "ema" in index:
+        average.load(_read_shards(folder, index["ema"]), int(index["ema"]["updates"]))
+    elif average is not None:
+        average.restart(model)
+        print(f"{folder}: no weight average in this checkpoint; it starts from the checkpoint's weights")
     trainer = torch.load(folder / "trainer.pt", weights_only=False)
     optimizer.load_state_dict(_unflatten_optimizer(_read_shards(folder, index["optim"]), trainer["optimizer"]))
     scheduler.load_state_dict(trainer["scheduler"])
@@ -207,9 +225,21 @@ def _read_index(folder: pathlib.Path) -> dict:
     return index
 
 
+def weights_for_use(folder) -> dict[str, torch.Tensor]:
+    """A checkpoint's weights for use rather than for resuming (CPU tensors, by state-dict name): the raw
+    weights with the weight average's float32 values in place of the parameters it holds, when it has one."""
+    folder = pathlib.Path(folder)
+    index = _read_index(folder)
+    weights = _read_shards(folder, index["model"])
+    if "ema" in index:
+        weights.update(_read_shards(folder, index["ema"]))
+    return weights
+
+
 def read_weights(source) -> dict[str, torch.Tensor]:
-    """Model weights (float32, CPU) from a checkpoint folder, a run folder's newest checkpoint or a pretrained
-    model file (:func:`codecsplat_warp.model.pretrained.save_pretrained`, e.g. the shipped default).
+    """Model weights (float32, CPU) from a checkpoint folder, a run folder's newest checkpoint (both as
+    :func:`weights_for_use`) or a pretrained model file (:func:`codecsplat_warp.model.pretrained.save_pretrained`,
+    e.g. the shipped default).
 
     Raises:
         DataError: ``source`` is neither a checkpoint, a run with one nor a readable safetensors file.
@@ -219,7 +249,7 @@ def read_weights(source) -> dict[str, torch.Tensor]:
         folder = source if (source / "checkpoint.json").is_file() else latest_checkpoint(source)
         if folder is None:
             raise DataError(f"{source}: no checkpoint there (expected a run folder with checkpoints/)")
-        tensors = _read_shards(folder, _read_index(folder)["model"])
+        tensors = weights_for_use(folder)
     elif source.is_file():
         try:
             tensors = load_file(str(source))

@@ -4,7 +4,8 @@
 
 ``--half`` rounds every weight to float16 first (half the file; the shipped default is stored so, within the
 16 MB a file may have). The frozen mono prior's weights go into the file with the rest, so a user needs no
-other file. Prints the model id the bitstreams of the file will carry.
+other file. The weights are the run's weight average where the checkpoint keeps one (``--ema-decay``), else the
+raw ones (:func:`train.checkpoint.weights_for_use`). Prints the model id the bitstreams of the file will carry.
 """
 
 from __future__ import annotations

@@ -4,7 +4,11 @@ Loss: MSE + 0.05 * LPIPS-VGG between rendered and true target images (Eq. 14), p
 head's auxiliary ``depth_aux_weight * |S_aux - S_enc|_1`` on detached inputs (it trains only that head, so
 that stage 2 starts with one; see :class:`codecsplat_warp.model.CodecSplat`). AdamW (lr 1e-4, weight decay
 0.01), linear warm-up then cosine decay to 10 %, gradient-norm clipping, bf16 autocast on CUDA (fp32 on
-CPU). Resumable checkpoints (see :mod:`train.checkpoint`), TensorBoard logs and a tqdm bar under ``--out``.
+CPU). After every optimiser step an exponential moving average of the trainable weights is updated
+(``--ema-decay``, default 0.999, warmed up as :func:`train.weight_average.warmed_up_decay`; 0 keeps none): it is
+saved with each checkpoint, continues on resume, and is what validation, export and warm starts from the run
+use (:func:`train.checkpoint.weights_for_use`). Resumable checkpoints (see :mod:`train.checkpoint`),
+TensorBoard logs and a tqdm bar under ``--out``.
 
     python -m train.stage1 --preset re10k --data procedural --steps 100000 --out runs/stage1-re10k
     torchrun --nproc_per_node 4 -m train.stage1 ...        # DDP, one batch per GPU per step
@@ -58,6 +62,7 @@ from .checkpoint import (latest_checkpoint, load_checkpoint, load_matching_weigh
                          save_checkpoint)
 from .data import (BatchSource, DataSpec, StepDataset, TrainingBatch, fixed_context_gap, make_source, parse_sizes,
                    parse_views)
+from .weight_average import WeightAverage
 
 REPO_ROOT = pathlib.Path(__file__).resolve().parents[1]
 DEFAULT_LPIPS_DIR = REPO_ROOT.parent / "shared" / "weights"
@@ -98,6 +103,7 @@ class TrainConfig:
     mono_weights: str = ""
     init: str = ""
     depth_aux_weight: float = 0.1
+    ema_decay: float = 0.999
 
 
 LOGGED = ("loss", "mse", "lpips", "psnr", "depth_aux", "grad_norm", "lr")
@@ -316,10 +322,11 @@ def train(config: TrainConfig, source: BatchSource | None = None, model_config: 
 
     model = stage.build_model(model_config, config).to(device)
     optimizer, scheduler = make_optimizer(model, config)
+    average = WeightAverage(model, config.ema_decay) if config.ema_decay > 0 else None
     start = 0
     checkpoint = latest_checkpoint(out)
     if checkpoint is not None:
-        start = load_checkpoint(checkpoint, model, optimizer, scheduler)
+        start = load_checkpoint(checkpoint, model, optimizer, scheduler, average)
     lpips = LPIPS("vgg", _lpips_dir(config)).to(device)
     trained = torch.nn.parallel.DistributedDataParallel(
         model, device_ids=[local_rank] if device.type == "cuda" else None) if world > 1 else model
@@ -348,6 +355,8 @@ def train(config: TrainConfig, source: BatchSource | None = None, model_config: 
         for step, batches in zip(range(start, config.steps), _micro_batches(loader, config.accumulate)):
             batches = [batch.to(device, non_blocking=True) for batch in batches]
             metrics = train_step(trained, lpips, optimizer, scheduler, batches, config, step, stage)
+            if average is not None:
+                average.update(model)
             metrics.update(step=step + 1, resumed_from=start, scenes=sum(b.scenes for b in batches))
             scenes_since_log += metrics["scenes"]
             bar.update(1)
@@ -370,7 +379,8 @@ def train(config: TrainConfig, source: BatchSource | None = None, model_config: 
             stop = _agree(stop, world, device)
             if (step + 1) % config.checkpoint_every == 0 or step + 1 == config.steps or stop:
                 if rank == 0:
-                    save_checkpoint(out, step + 1, model, optimizer, scheduler, extra, keep=config.keep_checkpoints)
+                    save_checkpoint(out, step + 1, model, optimizer, scheduler, extra, keep=config.keep_checkpoints,
+                                    average=average)
                 if world > 1:
                     dist.barrier()
             if stop:
@@ -426,6 +436,8 @@ def parse_args(argv: list[str] | None = None, config_class: type = TrainConfig, 
     config = config_class(**vars(args))
     if config.steps < 1 or config.checkpoint_every < 1 or config.log_every < 1 or config.accumulate < 1:
         raise InputError("--steps, --checkpoint-every, --log-every and --accumulate must be >= 1")
+    if not 0.0 <= config.ema_decay < 1.0:
+        raise InputError(f"--ema-decay must be in [0, 1) (0: keep no weight average), got {config.ema_decay}")
     return config
 
 

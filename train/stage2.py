@@ -53,7 +53,7 @@ from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.nn.config import ModelConfig
 
 from . import stage1
-from .checkpoint import latest_checkpoint, load_model_weights, read_weights
+from .checkpoint import latest_checkpoint, read_weights
 from .data import BatchSource, TrainingBatch
 
 RATE_WEIGHTS = {"dl3dv": 1e-4}
@@ -196,15 +196,16 @@ def train_only(model: CodecSplat, prefixes: list[str]) -> None:
 
 
 def load_stage1_weights(model: CodecSplat, run) -> None:
-    """Copy the newest checkpoint of the stage-1 run ``run`` into ``model``'s backbone and heads, and its
-    pre-codec refiner into the post-codec refiner too (the latent codec keeps its initialisation).
+    """Copy the newest checkpoint of the stage-1 run ``run`` (its weight average where it has one, see
+    :func:`train.checkpoint.weights_for_use`) into ``model``'s backbone and heads, and its pre-codec refiner
+    into the post-codec refiner too (the latent codec keeps its initialisation).
     Raises DataError when ``run`` has no stage-1 checkpoint of this model."""
     folder = latest_checkpoint(run)
     if folder is None:
         raise DataError(f"--init {run}: no checkpoint there (expected a stage-1 run folder with checkpoints/)")
     backbone = CodecSplat(model.config)
     try:
-        load_model_weights(folder, backbone)
+        backbone.load_state_dict(read_weights(folder))
     except RuntimeError as exc:
         raise DataError(f"--init {folder} is not a stage-1 checkpoint of this model: {exc}") from None
     model.load_state_dict(backbone.state_dict(), strict=False)  # the backbone's keys are a subset of the model's

@@ -3,7 +3,8 @@
 The samples are the entries of an evaluation index file (scene folder -> context and target frames, e.g.
 ``train/heldout/index-re10k.json``) under ``--data``, preprocessed to the ``--protocol`` size as
 ``codecsplat eval`` does (:func:`codecsplat_warp.eval.protocols.index_samples`). Each is rendered by the run's
-latest checkpoint and compared with the "copy the nearest context view" baseline. PSNR on [0,1]-clipped images.
+latest checkpoint (its weight average where it keeps one: :func:`train.checkpoint.weights_for_use`) and
+compared with the "copy the nearest context view" baseline. PSNR on [0,1]-clipped images.
 
     python -m train.validate --run runs/stage1 --data DIR --index train/heldout/index-re10k.json --protocol re10k
 
@@ -56,7 +57,8 @@ def score_sample(model: CodecSplat, sample: Sample, device: torch.device) -> Sce
 
 def load_run(run: pathlib.Path, device, step: int | None = None) -> tuple[CodecSplat, int]:
     """The model of a run's newest checkpoint, or of its checkpoint after ``step`` (sizes from the run's
-    ``config.json``; with its codec when the checkpoint has one), and the checkpoint's step."""
+    ``config.json``; with its codec when the checkpoint has one; the weight average's values where it keeps
+    one), and the checkpoint's step."""
     checkpoint = latest_checkpoint(run) if step is None else run / "checkpoints" / f"step-{step:08d}"
     if checkpoint is None or not (checkpoint / "checkpoint.json").is_file():
         raise InputError(f"no checkpoint {'' if step is None else f'of step {step} '}under {run}/checkpoints")
