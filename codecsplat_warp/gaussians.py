@@ -15,6 +15,7 @@ Conventions:
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from functools import lru_cache
 
 import torch
 
@@ -155,19 +156,33 @@ def _fibonacci_directions(count: int) -> torch.Tensor:
     return torch.stack([r * phi.cos(), r * phi.sin(), z], dim=-1)
 
 
+SH_FIT_DIRECTIONS = 64
+"""Directions the SH rotation blocks are fitted on (far more than the 16 coefficients of degree 3)."""
+
+
+@lru_cache(maxsize=16)
+def sh_rotation_fit(degree: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The rotation-independent part of :func:`sh_rotation_matrices`, made once per (degree, device):
+    the fit directions [P,3], the pseudo-inverse of their SH basis [K,P] and the block-diagonal mask [K,K]
+    (float64, on ``device``). Computed on the CPU and moved once, so that decoding a scene runs no SVD
+    and no host-to-device copy for it."""
+    dirs = _fibonacci_directions(SH_FIT_DIRECTIONS)
+    fit = torch.linalg.pinv(sh_basis(degree, dirs))
+    mask = torch.block_diag(*[torch.ones(2 * l + 1, 2 * l + 1, dtype=torch.float64) for l in range(degree + 1)])
+    return dirs.to(device), fit.to(device), mask.to(device)
+
+
 def sh_rotation_matrices(R: torch.Tensor, degree: int) -> torch.Tensor:
     """[V,K,K] block-diagonal matrices M with ``sh_rotated = M @ sh`` for rotations R [V,3,3].
 
     ``f'(d) = f(R^T d)``: evaluating the rotated coefficients at ``R d`` equals the original at ``d``.
     Each degree's block is solved by least squares over 64 well-spread directions (exact, since the
-    degree-l basis spans a rotation-invariant space); computed in float64.
+    degree-l basis spans a rotation-invariant space; :func:`sh_rotation_fit`); computed in float64.
     """
-    dirs = _fibonacci_directions(64).to(R.device)
-    basis = sh_basis(degree, dirs)  # [P,K]
+    dirs, fit, mask = sh_rotation_fit(degree, R.device)
     rotated = sh_basis(degree, dirs @ R.to(torch.float64))  # [V,P,K]: Y(R^T d) as rows d^T R
-    M = torch.linalg.pinv(basis) @ rotated  # [V,K,K]: least-squares solution of basis @ M = rotated
-    mask = torch.block_diag(*[torch.ones(2 * l + 1, 2 * l + 1, dtype=torch.float64) for l in range(degree + 1)])
-    return (M * mask.to(R.device)).to(R.dtype)
+    M = fit @ rotated  # [V,K,K]: least-squares solution of basis @ M = rotated
+    return (M * mask).to(R.dtype)
 
 
 def rotate_sh(sh: torch.Tensor, R: torch.Tensor) -> torch.Tensor:

@@ -112,6 +112,20 @@ def test_rotated_sh_in_world_equals_camera_colour(degree):
     torch.testing.assert_close(_spherical_harmonics(degree, world_dirs, rotated), _spherical_harmonics(degree, dirs, sh))
 
 
+def test_sh_rotation_fits_once_per_degree_and_device(monkeypatch):
+    """The SH rotation's least-squares fit (a pseudo-inverse, i.e. an SVD and, on CUDA, a host sync) is made once;
+    rotating again, as every decoded scene does, runs no pseudo-inverse."""
+    R = random_rotations(2, torch.Generator().manual_seed(7))
+    sh = torch.randn(2, 5, 9, 3, dtype=torch.float64)
+    first = rotate_sh(sh, R)
+
+    def no_pinv(*args, **kwargs):
+        raise AssertionError("the SH fit was made again")
+
+    monkeypatch.setattr(torch.linalg, "pinv", no_pinv)
+    torch.testing.assert_close(rotate_sh(sh, R), first, rtol=0, atol=0)
+
+
 def test_map_to_world_sh_and_centres_against_numpy():
     gen = torch.Generator().manual_seed(6)
     R = random_rotations(2, gen)
