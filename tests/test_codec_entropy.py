@@ -91,3 +91,24 @@ def test_feature_stream_must_hold_whole_words():
 
     with pytest.raises(BitstreamError, match="32-bit words"):
         entropy.new_decoder(b"\x00" * 5)
+
+
+def test_rate_estimate_bounds_its_value_but_keeps_the_outliers_gradient():
+    residual = torch.tensor([3.0, 50.0], requires_grad=True)
+    scale = torch.tensor([0.11, 0.11], requires_grad=True)
+    bits = entropy.gaussian_bits(residual, scale)
+    torch.testing.assert_close(bits.detach(), torch.full((2,), -math.log2(entropy.LIKELIHOOD_MIN)))
+    bits.sum().backward()
+    assert bool((residual.grad > 0).all()), "the rate must still pull an outlier towards the mean"
+    assert bool((scale.grad < 0).all()), "the rate must still widen the scale of an outlier"
+
+
+def test_rate_estimate_matches_the_probability_form_inside_its_bound():
+    r = torch.linspace(0.0, 4.0, 41, dtype=torch.float64)[:, None]
+    s = torch.logspace(math.log10(entropy.SCALE_MIN), math.log10(entropy.SCALE_MAX), 17, dtype=torch.float64)[None]
+    p = torch.special.ndtr((0.5 - r) / s) - torch.special.ndtr((-0.5 - r) / s)
+    inside = p > entropy.LIKELIHOOD_MIN
+    expected = -torch.log2(p)
+    bits = entropy.gaussian_bits(r.expand_as(p), s.expand_as(p))
+    assert bits.dtype == torch.float64
+    torch.testing.assert_close(bits[inside], expected[inside], rtol=1e-9, atol=1e-9)

@@ -66,7 +66,7 @@ ESCAPE_CHUNK_BITS = 16
 """The escape payload is written in uniform chunks of this many bits (constriction allows up to 24)."""
 
 LIKELIHOOD_MIN = 1e-9
-"""Lower bound of a symbol's probability in the rate estimate (about 30 bits), close to an escape's cost."""
+"""Lower bound of a symbol's probability in the rate estimate's value (about 30 bits), close to an escape's cost."""
 
 _categorical = constriction.stream.model.Categorical
 _uniform = constriction.stream.model.Uniform
@@ -95,11 +95,20 @@ def quantize_mean(mean: torch.Tensor) -> torch.Tensor:
 
 def gaussian_bits(residual: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     """Eq. 7 per element: ``-log2 P(residual)`` under a zero-mean Gaussian of ``scale`` integrated over
-    ``[residual - 0.5, residual + 0.5]`` (float32 at least; the symmetric form keeps the tails accurate)."""
+    ``[residual - 0.5, residual + 0.5]`` (float32 at least), at most ``-log2(LIKELIHOOD_MIN)`` bits.
+
+    It is computed in the log domain (``log_ndtr``, accurate far into the tails), and the bound holds only
+    the value: the gradient is that of the unbounded code length, so the rate keeps pulling an outlier
+    back and keeps widening its scale. (With the bound on the probability, an element past ~30 bits had
+    no rate gradient at all and could drift away for good; stage 2 diverged at small lambda that way.)
+    """
     dtype = torch.promote_types(residual.dtype, torch.float32)
     r, s = residual.to(dtype).abs(), scale.to(dtype)
-    p = torch.special.ndtr((0.5 - r) / s) - torch.special.ndtr((-0.5 - r) / s)
-    return -torch.log2(p.clamp_min(LIKELIHOOD_MIN))
+    log_upper = torch.special.log_ndtr((0.5 - r) / s)
+    log_lower = torch.special.log_ndtr((-0.5 - r) / s)
+    ratio = torch.exp(log_lower - log_upper).clamp_max(1.0 - torch.finfo(dtype).eps)
+    bits = -(log_upper + torch.log1p(-ratio)) / math.log(2.0)
+    return bits.detach().clamp_max(-math.log2(LIKELIHOOD_MIN)) + (bits - bits.detach())
 
 
 @dataclass(frozen=True)

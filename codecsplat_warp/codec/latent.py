@@ -202,7 +202,7 @@ class LatentBlock(nn.Module):
         log_gain = (base_log_gain(lam) + _at_least_float32(self.gain(emb)))[:, None, None]
         gain = log_gain.exp()
         z = self.posterior(torch.cat([x, encoded.to(x.dtype)], dim=1)) * gain if encoded is not None else None
-        z_hat = quantize(level, z, mean * gain, _bounded_log_scale(log_scale + log_gain)) / gain
+        z_hat = quantize(level, z, mean * gain, bounded_log_scale(log_scale + log_gain)) / gain
         x = x + self.merge(torch.cat([x, z_hat.to(x.dtype)], dim=1))
         return self.post(x, emb)
 
@@ -232,10 +232,31 @@ def _start_unused(block: "LatentBlock") -> None:
     nn.init.zeros_(block.post.conv2.bias)
 
 
-def _bounded_log_scale(log_scale: torch.Tensor) -> torch.Tensor:
-    """Clamp to the scale table's range with a straight-through gradient (never stuck at a bound)."""
+class _ClampTowardsRange(torch.autograd.Function):
+    """``x.clamp(lo, hi)`` whose gradient passes inside the range, and outside it only where a descent step
+    moves ``x`` back towards the range (CompressAI's LowerBound, on both sides)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, lo: float, hi: float) -> torch.Tensor:
+        ctx.save_for_backward(x)
+        ctx.bounds = (lo, hi)
+        return x.clamp(lo, hi)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        (x,) = ctx.saved_tensors
+        lo, hi = ctx.bounds
+        passes = ((x >= lo) | (grad < 0)) & ((x <= hi) | (grad > 0))
+        return grad * passes, None, None
+
+
+def bounded_log_scale(log_scale: torch.Tensor) -> torch.Tensor:
+    """Clamp to the scale table's range. Past a bound the gradient only passes where it leads back into
+    the range: a plain straight-through clamp let the rate push the log-scales of zero residuals ever further
+    below the smallest scale (by up to 1e5 in a diverged stage-2 run), where no gradient could bring them back
+    when their residuals grew."""
     lo, hi = entropy.log_scale_bounds()
-    return log_scale + (log_scale.clamp(lo, hi) - log_scale).detach()
+    return _ClampTowardsRange.apply(log_scale, lo, hi)
 
 
 class TopDown(nn.Module):
