@@ -135,6 +135,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--size", help="WIDTHxHEIGHT instead of the protocol's image size (its depth range stays)")
     evaluate.add_argument("--restart", action="store_true",
                           help="start over instead of resuming the finished samples in OUT/results.json")
+    evaluate.add_argument("--renders", action="store_true",
+                          help="also write OUT/renders/SCENE-N.png per sample: its targets by every method beside the "
+                          "ground truth")
     evaluate.add_argument("-o", "--out", default="codecsplat-eval", help="output folder (default ./codecsplat-eval)")
 
     selfcheck = sub.add_parser("selfcheck", help="every kernel vs its float64 reference (--device auto: every device)")
@@ -400,7 +403,8 @@ def _cmd_eval(args) -> int:
                         lpips_weights=args.lpips_weights, png_sh_clusters=args.png_sh_clusters,
                         kmeans_iterations=args.kmeans_iterations, progress=not args.json,
                         scenes=tuple(name.strip() for name in args.scenes.split(",") if name.strip()),
-                        index=args.index, size=_size(args.size) if args.size else None, resume=not args.restart)
+                        index=args.index, size=_size(args.size) if args.size else None, resume=not args.restart,
+                        renders=args.renders)
     result = evaluate(model, config, device)
     lines = [f"{len(result['scenes'])} scene(s), {args.protocol} protocol, {result['machine']}",
              "", "Table 1", result["tables"]["table1"], "", "Table 2 (seconds)", result["tables"]["table2"], "",

@@ -30,7 +30,7 @@ from .data.procedural import ProceduralConfig, procedural_scene
 from .errors import InputError
 from .data import split_context_targets
 from .eval.protocols import Sample, nearest_context_images
-from .eval.report import BACKBONE, COPY_NEAREST, format_bytes, plot_rate_distortion, pyplot, save_figure
+from .eval.report import BACKBONE, COPY_NEAREST, format_bytes, plot_comparison, plot_rate_distortion
 from .export.files import atomic_output, write_bytes, write_json
 from .export.ply import write_ply
 from .export.video import to_uint8_frames
@@ -182,14 +182,5 @@ def _write_images(out: pathlib.Path, sample: Sample, rows: list[dict], renders: 
     truth = to_uint8_frames(sample.target_images)
     titles = (["ground truth"] + [f"{r['method']}: {r['psnr']:.2f} dB" for r in references]
               + [f"λ={r['lam']:g}: {format_bytes(r['bytes'])}, {r['psnr']:.2f} dB" for r in rows])
-    columns = [truth] + reference_renders + renders
-    fig, axes = pyplot().subplots(len(truth), len(columns), squeeze=False,
-                                  figsize=(2.6 * len(columns), 2.6 * len(truth) * truth.shape[1] / truth.shape[2] + 0.4))
-    for i, row_axes in enumerate(axes):
-        for j, ax in enumerate(row_axes):
-            ax.imshow(columns[j][i])
-            ax.set_axis_off()
-            if i == 0:
-                ax.set_title(titles[j], fontsize=8)
-    save_figure(fig, out / "comparison.png")
+    plot_comparison([truth] + reference_renders + renders, titles, out / "comparison.png")
     return paths + [str(out / "comparison.png")]

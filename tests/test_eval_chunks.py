@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 
@@ -200,3 +201,30 @@ def test_chunk_eval_on_real_scenes(real_chunks, tiny_model, tmp_path):
     assert result["scenes"] == ["cap_milk"] and result["plan"] == [["cap_milk", [0, 5], [2, 3]]]
     floor = next(s for s in result["summary"] if s["method"] == COPY_NEAREST)
     assert floor["bytes"] == 0 and 5.0 < floor["psnr"] < 60.0
+
+
+def test_renders_picture_every_method_of_each_sample(synthetic, tiny_model, tmp_path):
+    import imageio.v3 as iio
+
+    config = _config(synthetic, tmp_path / "out", scenes=("s0",), renders=True)
+    result = evaluate(tiny_model, config, torch.device("cpu"))
+    assert [(r["method"], r["setting"]) for r in result["rows"]] == [
+        (COPY_NEAREST, "no bitstream"), ("CodecSplat", "λ=64"), ("CodecSplat w/o codec→PLY", "float32")]
+    picture = iio.imread(tmp_path / "out" / "renders" / "s0-1.png")
+    assert picture.ndim == 3 and picture.shape[1] > picture.shape[0]  # 4 columns (truth + 3 methods), 3 target rows
+    assert sorted(p.name for p in (tmp_path / "out" / "renders").iterdir()) == ["s0-1.png"]
+
+
+def test_the_evaluator_keeps_one_render_per_row_when_asked(synthetic, tiny_model):
+    from codecsplat_warp.metrics.image import ImageMetrics
+
+    sample = next(iter(chunk_plan(synthetic / "test", synthetic / "index.json", RE10K_SMALL, ("s0",)).load(0)))
+    metrics = ImageMetrics(None, torch.device("cpu"))
+    keeping = Evaluator(tiny_model, metrics, (64.0,), (), torch.device("cpu"), keep_renders=True)
+    rows = keeping.run(sample)
+    targets, height, width = sample.target_images.shape[0], *sample.target_images.shape[-2:]
+    assert len(keeping.renders) == len(rows) == 3
+    assert all(r.shape == (targets, height, width, 3) and r.dtype == np.uint8 for r in keeping.renders)
+    plain = Evaluator(tiny_model, metrics, (64.0,), (), torch.device("cpu"))
+    plain.run(sample)
+    assert plain.renders == []

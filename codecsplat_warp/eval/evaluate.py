@@ -24,7 +24,8 @@ encoder; *decompress* is bytes -> Gaussians on the device. A warm-up pass on the
 kernel loading, allocator) is not timed.
 
 Outputs (``--out``): ``results.json`` (every sample and the summary; a rerun resumes from it), ``tables.md`` (Tables 1 and 2 in
-the paper's form), ``rate_distortion.png`` and ``distortion_vs_time.png``.
+the paper's form), ``rate_distortion.png`` and ``distortion_vs_time.png``; with ``--renders``, one picture per sample
+under ``renders/`` (its target views against the ground truth, by every method, titled with bytes and PSNR).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ import time
 from dataclasses import asdict, dataclass, replace
 from typing import Callable, Iterator
 
+import numpy as np
 import torch
 from tqdm.auto import tqdm
 
@@ -45,14 +47,15 @@ from ..codec import bytes_report, check_lambda
 from ..errors import DataError, InputError
 from ..export.files import write_json, write_text
 from ..export.ply import decode_ply, encode_ply
+from ..export.video import to_uint8_frames
 from ..gaussians import Gaussians
 from ..measure import machine_name, synchronize, timed
 from ..metrics.image import ImageMetrics
 from ..model.codecsplat import model_id
 from .protocols import (PROTOCOLS, Protocol, Sample, SamplePlan, chunk_plan, eager_plan, find_scenes, folder_index_plan,
                         is_chunk_folder, nearest_context_images, scene_samples, select_scenes)
-from .report import (BACKBONE, CODECSPLAT, COPY_NEAREST, Row, markdown_report, plot_distortion_vs_time,
-                     plot_rate_distortion, summarize, table1, table2)
+from .report import (BACKBONE, CODECSPLAT, COPY_NEAREST, Row, format_bytes, markdown_report, plot_comparison,
+                     plot_distortion_vs_time, plot_rate_distortion, summarize, table1, table2)
 
 BASELINE_NAMES = ("ply", "png", "feature")
 """Baselines ``--baselines`` may name: (a) PLY + Deflate, (b) PNG, (c) float16 feature + Deflate."""
@@ -89,11 +92,17 @@ class Evaluator:
         lambdas: CodecSplat operating points.
         baselines: subset of :data:`BASELINE_NAMES`.
         png: the PNG baseline with its settings (K_SH and Lloyd steps).
+        keep_renders: keep each method's target renders of the last sample in :attr:`renders`.
+
+    Attributes:
+        renders: after :meth:`run` with ``keep_renders``, one [T,H,W,3] uint8 array per returned row, in order.
     """
 
     def __init__(self, model, metrics: ImageMetrics, lambdas, baselines, device: torch.device,
-                 png: PngCompression = PngCompression()):
+                 png: PngCompression = PngCompression(), keep_renders: bool = False):
         self.model = model
+        self.keep_renders = keep_renders
+        self.renders: list[np.ndarray] = []
         self.metrics = metrics
         self.lambdas = [float(lam) for lam in lambdas]
         self.baselines = list(baselines)
@@ -119,6 +128,7 @@ class Evaluator:
         """Every method's :class:`Row` on one sample."""
         sample = sample.to(self.device)
         rows = []
+        self.renders = []
 
         def step(row: Row) -> None:
             rows.append(row)
@@ -149,14 +159,19 @@ class Evaluator:
         """Mean of each metric over the target views rendered from ``gaussians``."""
         with torch.no_grad():
             rgb = self.model.render(gaussians, sample.target_cameras)["rgb"]
+        return self._metrics(rgb, sample)
+
+    def _metrics(self, rgb: torch.Tensor, sample: Sample) -> dict[str, float]:
+        """Mean of each metric over the target views ``rgb`` [T,3,H,W] (kept when ``keep_renders``)."""
+        if self.keep_renders:
+            self.renders.append(to_uint8_frames(rgb))
         values = self.metrics(rgb, sample.target_images)
         return {name: statistics.fmean(v) for name, v in values.items()}
 
     def _copy_nearest(self, sample: Sample) -> Row:
         rgb = nearest_context_images(sample.context_images, sample.context_cameras, sample.target_cameras)
-        values = self.metrics(rgb, sample.target_images)
-        return Row(sample.scene, COPY_NEAREST, "no bitstream", 0, {name: statistics.fmean(v) for name, v in values.items()},
-                   0.0, 0.0, 0.0)
+        return Row(sample.scene, COPY_NEAREST, "no bitstream", 0, self._metrics(rgb, sample), 0.0, 0.0, 0.0)
+
 
     def _codecsplat(self, sample: Sample, lam: float) -> Row:
         with backbone_clock(self.model, self.device) as marks:
@@ -217,9 +232,11 @@ class EvalConfig:
     """(width, height) in pixels, each a multiple of 4, instead of the protocol's (its depth range and views stay)."""
     resume: bool = True
     """Keep the samples an earlier run of the same evaluation finished in ``out/results.json`` (False: start over)."""
+    renders: bool = False
+    """Also write ``renders/<scene>-<sample>.png`` per sample: targets x (ground truth, every method)."""
 
 
-RUN_SETTINGS = ("out", "progress", "resume")
+RUN_SETTINGS = ("out", "progress", "resume", "renders")
 """EvalConfig fields that do not change the results: a run may resume another that differs only in these."""
 
 
@@ -255,7 +272,7 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
     if not plan.keys:
         raise DataError(f"no scene under {config.data} is usable with the {protocol.name} protocol: "
                         + ("; ".join(f"{s['scene']}: {s['reason']}" for s in plan.skipped) or "the index selects none"))
-    evaluator = Evaluator(model, metrics, config.lambdas, config.baselines, device, png)
+    evaluator = Evaluator(model, metrics, config.lambdas, config.baselines, device, png, keep_renders=config.renders)
     out = pathlib.Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
     files = {"json": out / "results.json", "markdown": out / "tables.md", "rate_distortion": out / "rate_distortion.png",
@@ -274,7 +291,10 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
             if done == start + 1:
                 evaluator.warm_up(sample)
             progress.set_postfix_str(sample.scene)
-            rows += evaluator.run(sample, progress)
+            sample_rows = evaluator.run(sample, progress)
+            rows += sample_rows
+            if config.renders:
+                _write_renders(out / "renders" / f"{sample.scene}-{done}.png", sample, sample_rows, evaluator.renders)
             # after every sample, so an interrupted run keeps what it measured
             write_json(files["json"], {**header, "samples_done": done, "samples_total": total,
                                        "summary": summarize(rows), "rows": [asdict(r) for r in rows]})
@@ -286,6 +306,14 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
     plot_rate_distortion(summary, files["rate_distortion"])
     plot_distortion_vs_time(summary, files["distortion_vs_time"])
     return result
+
+
+def _write_renders(path: pathlib.Path, sample: Sample, rows: list[Row], renders: list[np.ndarray]) -> None:
+    """One sample's picture: its target views (rows) as the ground truth and each method's render (columns),
+    titled with the method, bytes and PSNR."""
+    titles = ["ground truth"] + [f"{row.method} {row.setting}\n{format_bytes(row.bytes)}, {row.metrics['psnr']:.2f} dB"
+                                 for row in rows]
+    plot_comparison([to_uint8_frames(sample.target_images)] + renders, titles, path)
 
 
 def _plan(config: EvalConfig, protocol: Protocol, model) -> SamplePlan:

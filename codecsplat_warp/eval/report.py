@@ -147,6 +147,21 @@ def _save(fig, axes, path: pathlib.Path) -> None:
     save_figure(fig, path)
 
 
+def plot_comparison(columns: list, titles: list[str], path: pathlib.Path) -> None:
+    """Side-by-side images: ``columns[j]`` is [T,H,W,3] uint8 (one frame per target view, the rows), titled
+    ``titles[j]`` above its first row (e.g. ground truth, references, each lambda)."""
+    views, height, width = columns[0].shape[:3]
+    fig, axes = pyplot().subplots(views, len(columns), squeeze=False,
+                                  figsize=(2.6 * len(columns), 2.6 * views * height / width + 0.4))
+    for i, row_axes in enumerate(axes):
+        for j, ax in enumerate(row_axes):
+            ax.imshow(columns[j][i])
+            ax.set_axis_off()
+            if i == 0:
+                ax.set_title(titles[j], fontsize=8)
+    save_figure(fig, path)
+
+
 def save_figure(fig, path: pathlib.Path) -> None:
     """Write a matplotlib figure as PNG (atomically) and close it."""
     fig.tight_layout()
