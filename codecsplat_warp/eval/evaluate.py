@@ -172,7 +172,6 @@ class Evaluator:
         rgb = nearest_context_images(sample.context_images, sample.context_cameras, sample.target_cameras)
         return Row(sample.scene, COPY_NEAREST, "no bitstream", 0, self._metrics(rgb, sample), 0.0, 0.0, 0.0)
 
-
     def _codecsplat(self, sample: Sample, lam: float) -> Row:
         with backbone_clock(self.model, self.device) as marks:
             synchronize(self.device)
