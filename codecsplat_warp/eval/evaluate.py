@@ -159,9 +159,9 @@ class Evaluator:
         """Mean of each metric over the target views rendered from ``gaussians``."""
         with torch.no_grad():
             rgb = self.model.render(gaussians, sample.target_cameras)["rgb"]
-        return self._metrics(rgb, sample)
+        return self._score_rgb(rgb, sample)
 
-    def _metrics(self, rgb: torch.Tensor, sample: Sample) -> dict[str, float]:
+    def _score_rgb(self, rgb: torch.Tensor, sample: Sample) -> dict[str, float]:
         """Mean of each metric over the target views ``rgb`` [T,3,H,W] (kept when ``keep_renders``)."""
         if self.keep_renders:
             self.renders.append(to_uint8_frames(rgb))
@@ -170,7 +170,7 @@ class Evaluator:
 
     def _copy_nearest(self, sample: Sample) -> Row:
         rgb = nearest_context_images(sample.context_images, sample.context_cameras, sample.target_cameras)
-        return Row(sample.scene, COPY_NEAREST, "no bitstream", 0, self._metrics(rgb, sample), 0.0, 0.0, 0.0)
+        return Row(sample.scene, COPY_NEAREST, "no bitstream", 0, self._score_rgb(rgb, sample), 0.0, 0.0, 0.0)
 
     def _codecsplat(self, sample: Sample, lam: float) -> Row:
         with backbone_clock(self.model, self.device) as marks:
