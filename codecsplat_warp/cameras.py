@@ -205,9 +205,21 @@ class Cameras:
         K[:, 1, 2] -= top
         return self._derive(K=K, width=int(width), height=int(height))
 
+    def mirrored(self) -> "Cameras":
+        """The cameras of the left-right mirrored images (``image.flip(-1)``) of the mirrored world (x -> -x).
+
+        Column u becomes ``width - u`` (cx -> width - cx, fx unchanged) and ``w2c`` becomes S w2c S with
+        S = diag(-1, 1, 1, 1): a proper rotation again, so every view of the scene stays consistent (a world point
+        x maps to S x, and projects where the mirrored image shows it). Training uses it to double the scenes.
+        """
+        S = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0], dtype=self.dtype, device=self.device))
+        K = self.K.clone()
+        K[:, 0, 2] = self.width - self.K[:, 0, 2]
+        return self._derive(K=K, w2c=S @ self.w2c @ S)
+
     def _derive(self, **changes) -> "Cameras":
         """A copy with ``changes`` applied, skipping validation: only for transformations that keep valid
-        cameras valid (device/dtype moves, view selection, rescaling, cropping). Saves a host sync per op."""
+        cameras valid (device/dtype moves, view selection, rescaling, cropping, mirroring). Saves a host sync per op."""
         new = object.__new__(Cameras)
         for field in fields(self):
             object.__setattr__(new, field.name, changes.get(field.name, getattr(self, field.name)))

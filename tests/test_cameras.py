@@ -65,6 +65,26 @@ def test_rescale_and_crop_keep_pixel_edge_convention():
         cams.cropped(20, 0, 30, 10)
 
 
+def _project(cams: Cameras, points: torch.Tensor) -> torch.Tensor:
+    """[V,2] pixel positions (u, v) of one world point per view."""
+    cam = (cams.w2c @ torch.cat([points, torch.ones(len(points), 1, dtype=points.dtype)], 1)[..., None])[:, :3, 0]
+    pix = (cams.K @ cam[..., None])[..., 0]
+    return pix[:, :2] / pix[:, 2:]
+
+
+def test_mirrored_cameras_see_the_mirrored_world_in_the_flipped_image():
+    cams = make_rig(3, 40, 30, offset=(0.3, -0.2, 0.1))
+    mirror = cams.mirrored()
+    Cameras(mirror.K, mirror.w2c, mirror.near, mirror.far, 40, 30)  # validates: still proper rotations, no skew
+    points = torch.tensor([[0.1, 0.2, 4.0], [-0.5, 0.3, 3.0], [0.7, -0.4, 5.0]], dtype=torch.float64)
+    uv = _project(cams, points)
+    uv_mirror = _project(mirror, points * torch.tensor([-1.0, 1.0, 1.0], dtype=torch.float64))
+    torch.testing.assert_close(uv_mirror[:, 0], 40.0 - uv[:, 0])
+    torch.testing.assert_close(uv_mirror[:, 1], uv[:, 1])
+    torch.testing.assert_close(mirror.mirrored().w2c, cams.w2c)
+    torch.testing.assert_close(mirror.mirrored().K, cams.K)
+
+
 def test_relative_transforms_map_reference_camera_points_to_source_camera():
     cams = make_rig(3, 16, 12, offset=(100.0, 0.0, 0.0))
     nbrs = torch.tensor([[1, 2], [0, 2], [0, 1]])

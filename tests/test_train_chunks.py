@@ -14,7 +14,7 @@ from conftest import needs_lpips
 from codecsplat_warp.data import ProceduralConfig, procedural_scene, write_chunks
 from codecsplat_warp.errors import DataError, InputError
 from codecsplat_warp.nn.config import get_preset
-from train.data import CHUNK_CACHE, ChunkScenes, DataSpec, batch_shape, fixed_context_gap, make_source
+from train.data import CHUNK_CACHE, Augmentation, ChunkScenes, DataSpec, batch_shape, fixed_context_gap, make_source
 from train.stage1 import METRICS_FILE, TrainConfig, data_spec, parse_args, train
 from train.stage2 import parse_args as stage2_args
 
@@ -69,7 +69,7 @@ def test_chunk_source_gives_the_same_batch_for_the_same_index(chunk_root):
 
 def test_chunk_scenes_keep_a_few_chunks_and_pickle_for_workers(chunk_root):
     keys = sorted(_index(chunk_root))
-    scenes = ChunkScenes(chunk_root, keys, fixed_context_gap(GAP), photometric=False)
+    scenes = ChunkScenes(chunk_root, keys, fixed_context_gap(GAP), Augmentation())
     shape = batch_shape(_spec(views=(2,)), 0, 0)
     for seed in range(6):
         sample = scenes(torch.Generator().manual_seed(seed), shape)

@@ -17,7 +17,8 @@ from codecsplat_warp.nn.config import ModelConfig, get_preset
 from codecsplat_warp.nn.mono import VGGMono
 from codecsplat_warp.ops.geometry import nearest_views
 from train.checkpoint import load_matching_weights, read_weights
-from train.data import DataSpec, TrainingBatch, batch_shape, make_source, photometric_jitter, random_resized_crop
+from train.data import (Augmentation, DataSpec, TrainingBatch, batch_shape, make_source, photometric_jitter,
+                        random_resized_crop)
 from train.heldout import HELD_OUT, INDEX_FILES
 
 TINY = get_preset("tiny")
@@ -76,6 +77,25 @@ def test_photometric_jitter_is_one_change_for_all_views_and_stays_in_range():
     out = photometric_jitter(images, torch.Generator().manual_seed(4))
     assert out.min() >= 0 and out.max() <= 1 and not torch.equal(out, images)
     torch.testing.assert_close(out[0], out[2])
+
+
+def test_mirror_flips_half_of_the_scenes_with_their_cameras_and_leaves_the_other_draws_alone():
+    images, cameras = torch.rand(3, 3, 8, 12), _cameras(3, width=12, height=8)
+    flipped = 0
+    for seed in range(40):
+        out, cams = Augmentation(mirror=True)(images, cameras, torch.Generator().manual_seed(seed))
+        if torch.equal(out, images):
+            assert cams is cameras
+        else:
+            flipped += 1
+            torch.testing.assert_close(out, images.flip(-1))
+            torch.testing.assert_close(cams.w2c, cameras.mirrored().w2c)
+            torch.testing.assert_close(cams.K, cameras.mirrored().K)
+    assert 10 <= flipped <= 30
+    jittered, _ = Augmentation(photometric=True)(images, cameras, torch.Generator().manual_seed(5))
+    both, _ = Augmentation(photometric=True, mirror=True)(images, cameras, torch.Generator().manual_seed(5))
+    assert torch.equal(both, jittered) or torch.equal(both, jittered.flip(-1))
+    assert Augmentation()(images, cameras, torch.Generator())[0] is images
 
 
 def test_random_crop_keeps_the_principal_ray():

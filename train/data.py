@@ -21,7 +21,10 @@ context-view budget. Each scene of the batch is then a procedural scene or a rea
   (:func:`~codecsplat_warp.data.views.sample_bounded_views`, ``DataSpec.view_sampler``; the context gap widens
   with the training step, ``BatchShape.step``) and is resized and cropped as real scenes are;
 * with ``DataSpec.photometric`` every scene gets one random brightness, contrast, saturation and gamma
-  change for all of its views (a camera's exposure, the same in context and targets).
+  change for all of its views (a camera's exposure, the same in context and targets);
+* with ``DataSpec.mirror`` every scene is mirrored left-right with probability 1/2, all of its views together
+  (images flipped, cameras :meth:`~codecsplat_warp.cameras.Cameras.mirrored`): a mirrored world that is just
+  as consistent, which doubles the scenes a small training set offers.
 """
 
 from __future__ import annotations
@@ -85,6 +88,7 @@ class DataSpec:
         procedural_fraction: share of procedural scenes when real scenes are given too (``mix:``).
         photo_textures: texture procedural scenes with crops of the real training photographs.
         photometric: per-scene photometric augmentation.
+        mirror: mirror half of the scenes left-right (world and images).
         view_sampler: the bounded view sampler of chunk scenes (gaps in frames; its context and target
             counts are replaced by each batch's); the default is DepthSplat's RE10K schedule.
         batches_per_step: batches per optimiser step (``accumulate * world_size``): batch ``index`` is drawn
@@ -98,6 +102,7 @@ class DataSpec:
     procedural_fraction: float = 0.5
     photo_textures: bool = False
     photometric: bool = False
+    mirror: bool = False
     view_sampler: BoundedSamplerConfig = BoundedSamplerConfig()
     batches_per_step: int = 1
 
@@ -111,6 +116,10 @@ class DataSpec:
                              f"{self.targets}, {self.batch_views}, {self.batches_per_step}")
         if not 0.0 <= self.procedural_fraction <= 1.0:
             raise InputError(f"procedural_fraction must be in [0, 1], got {self.procedural_fraction}")
+
+    @property
+    def augmentation(self) -> "Augmentation":
+        return Augmentation(photometric=self.photometric, mirror=self.mirror)
 
     @classmethod
     def of_model(cls, config: ModelConfig) -> "DataSpec":
@@ -248,6 +257,37 @@ def photometric_jitter(images: torch.Tensor, generator: torch.Generator) -> torc
     return ((out - grey) * factor["saturation"] + grey).clamp(0.0, 1.0)
 
 
+def random_mirror(images: torch.Tensor, cameras: Cameras, generator: torch.Generator) -> tuple[torch.Tensor, Cameras]:
+    """float [N,3,H,W] views of one scene and their cameras -> the same, or with probability 1/2 all of them
+    mirrored left-right (images flipped, :meth:`Cameras.mirrored`)."""
+    if _uniform(generator, 0.0, 1.0) < 0.5:
+        return images, cameras
+    return images.flip(-1), cameras.mirrored()
+
+
+@dataclass(frozen=True)
+class Augmentation:
+    """Per-scene augmentation of a sample's views (all views of a scene alike).
+
+    Attributes:
+        photometric: :func:`photometric_jitter`.
+        mirror: :func:`random_mirror`.
+    """
+
+    photometric: bool = False
+    mirror: bool = False
+
+    def __call__(self, images: torch.Tensor, cameras: Cameras, generator: torch.Generator
+                 ) -> tuple[torch.Tensor, Cameras]:
+        """float [N,3,H,W] in [0,1] and their cameras -> augmented ones (random numbers drawn only for the
+        augmentations that are on, so turning one off leaves the others' draws as they were)."""
+        if self.photometric:
+            images = photometric_jitter(images, generator)
+        if self.mirror:
+            images, cameras = random_mirror(images, cameras, generator)
+        return images, cameras
+
+
 def random_resized_crop(images: torch.Tensor, cameras: Cameras, height: int, width: int,
                         generator: torch.Generator) -> tuple[torch.Tensor, Cameras]:
     """uint8 [N,3,h,w] at the cameras' size -> float32 [N,3,height,width] in [0,1]: resized (bilinear,
@@ -264,13 +304,12 @@ def random_resized_crop(images: torch.Tensor, cameras: Cameras, height: int, wid
 
 
 def cropped_sample(images: torch.Tensor, cameras: Cameras, context: int, shape: BatchShape,
-                   generator: torch.Generator, photometric: bool, key: str) -> TrainingSample:
+                   generator: torch.Generator, augmentation: Augmentation, key: str) -> TrainingSample:
     """uint8 [N,3,h,w] views (the first ``context`` of them context, the rest targets) and their cameras ->
-    a :class:`TrainingSample` at the batch's size: :func:`random_resized_crop`, then :func:`photometric_jitter`
-    when ``photometric``; float32 cameras."""
+    a :class:`TrainingSample` at the batch's size: :func:`random_resized_crop`, then ``augmentation``;
+    float32 cameras."""
     pixels, cams = random_resized_crop(images, cameras, shape.height, shape.width, generator)
-    if photometric:
-        pixels = photometric_jitter(pixels, generator)
+    pixels, cams = augmentation(pixels, cams, generator)
     cams = cams.to(dtype=torch.float32)
     return TrainingSample(pixels[:context], cams.select(slice(0, context)), pixels[context:],
                           cams.select(slice(context, None)), key)
@@ -284,12 +323,12 @@ class RealScenes:
     Instances are picklable before first use, so DataLoader workers each build their own cache.
     """
 
-    def __init__(self, root, names: list[str], photometric: bool):
+    def __init__(self, root, names: list[str], augmentation: Augmentation):
         if not names:
             raise DataError(f"no scenes (*/cameras.json) under {root}")
         self.root = pathlib.Path(root)
         self.names = list(names)
-        self.photometric = photometric
+        self.augmentation = augmentation
         self._cache: dict[str, tuple[torch.Tensor, Cameras]] = {}
 
     def scene(self, name: str) -> tuple[torch.Tensor, Cameras]:
@@ -308,7 +347,7 @@ class RealScenes:
         spread = int(torch.randint(shape.views + shape.targets + 1, (), generator=generator))
         context, targets = split_context_targets(cameras, anchor, shape.views, shape.targets, spread)
         views = context + targets
-        return cropped_sample(images[views], cameras.select(views), len(context), shape, generator, self.photometric,
+        return cropped_sample(images[views], cameras.select(views), len(context), shape, generator, self.augmentation,
                               name)
 
     def photo_crops(self, generator: torch.Generator, count: int) -> list[torch.Tensor]:
@@ -342,7 +381,7 @@ class ChunkScenes:
     Instances are picklable, so DataLoader workers each keep their own cache.
     """
 
-    def __init__(self, root, keys: list[str], view_sampler: BoundedSamplerConfig, photometric: bool,
+    def __init__(self, root, keys: list[str], view_sampler: BoundedSamplerConfig, augmentation: Augmentation,
                  near: float = 0.5, far: float = 100.0):
         index = load_index(root)
         if not keys:
@@ -351,7 +390,7 @@ class ChunkScenes:
         self.chunk_of = {key: index[key] for key in keys}
         self.keys = list(keys)
         self.view_sampler = view_sampler
-        self.photometric = photometric
+        self.augmentation = augmentation
         self.near, self.far = near, far
         self._cache: OrderedDict[pathlib.Path, dict[str, Scene]] = OrderedDict()
 
@@ -382,7 +421,7 @@ class ChunkScenes:
                 continue
             frames = list(views.context + views.target)
             return cropped_sample(scene.decoded_images(frames), scene.cameras.select(frames), len(views.context),
-                                  shape, generator, self.photometric, key)
+                                  shape, generator, self.augmentation, key)
         raise DataError(f"{self.root}: {MAX_SCENE_DRAWS} scenes drawn in a row are too short for {shape.views} "
                         f"context views at step {shape.step}'s context gap {context_gap_bounds(sampler, shape.step)}")
 
@@ -404,9 +443,9 @@ class ProceduralScenes:
     photographs as textures.
     """
 
-    def __init__(self, textures: RealScenes | ChunkScenes | None = None, photometric: bool = False):
+    def __init__(self, textures: RealScenes | ChunkScenes | None = None, augmentation: Augmentation = Augmentation()):
         self.textures = textures
-        self.photometric = photometric
+        self.augmentation = augmentation
 
     def __call__(self, generator: torch.Generator, shape: BatchShape) -> TrainingSample:
         from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
@@ -415,10 +454,8 @@ class ProceduralScenes:
         photos = self.textures.photo_crops(generator, PHOTO_TEXTURES_PER_SCENE) if self.textures else None
         scene = procedural_scene(int(torch.randint(2**62, (), generator=generator)), config, photo_textures=photos)
         context, targets = split_context_targets(scene.cameras, 0, shape.views, shape.targets)
-        pixels = scene.images.float() / 255.0
-        if self.photometric:
-            pixels = photometric_jitter(pixels, generator)
-        cams = scene.cameras.to(dtype=torch.float32)
+        pixels, cams = self.augmentation(scene.images.float() / 255.0, scene.cameras, generator)
+        cams = cams.to(dtype=torch.float32)
         return TrainingSample(pixels[context], cams.select(context), pixels[targets], cams.select(targets), scene.key)
 
 
@@ -461,7 +498,7 @@ def make_source(data: str, spec: DataSpec, seed: int, holdout: list[str] | None 
         DataError: a chunk folder that does not exist or lacks a valid ``index.json``, or no scenes left.
     """
     if data == "procedural":
-        return batch_source(spec, seed, None, ProceduralScenes(photometric=spec.photometric))
+        return batch_source(spec, seed, None, ProceduralScenes(augmentation=spec.augmentation))
     mixed = data.startswith(MIX_PREFIX)
     body = data[len(MIX_PREFIX):] if mixed else data
     if body.startswith(CHUNKS_PREFIX):
@@ -469,15 +506,15 @@ def make_source(data: str, spec: DataSpec, seed: int, holdout: list[str] | None 
         if not root.is_dir():
             raise DataError(f"chunk folder {root} (from --data {data!r}) does not exist")
         keys = without_holdout(root, sorted(load_index(root)), holdout or [])
-        real = ChunkScenes(root, keys, spec.view_sampler, spec.photometric)
+        real = ChunkScenes(root, keys, spec.view_sampler, spec.augmentation)
     else:
         if not pathlib.Path(body).is_dir():
             raise InputError("data must be 'procedural', a directory of scenes, 'chunks:DIRECTORY' or either "
                              f"of the last two after 'mix:', got {data!r}")
-        real = RealScenes(body, training_scenes(body, holdout or []), spec.photometric)
+        real = RealScenes(body, training_scenes(body, holdout or []), spec.augmentation)
     if not mixed:
         return batch_source(spec, seed, real, None)
-    procedural = ProceduralScenes(real if spec.photo_textures else None, spec.photometric)
+    procedural = ProceduralScenes(real if spec.photo_textures else None, spec.augmentation)
     return batch_source(spec, seed, real, procedural)
 
 

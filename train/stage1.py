@@ -98,6 +98,7 @@ class TrainConfig:
     procedural_fraction: float = 0.5
     photo_textures: int = 0
     photometric: int = 0
+    mirror: int = 0
     context_gap: str = ""
     mono: str = ""
     mono_weights: str = ""
@@ -287,7 +288,7 @@ def data_spec(config: TrainConfig, model_config: ModelConfig, world: int = 1) ->
                     sizes=parse_sizes(config.sizes) if config.sizes else base.sizes, targets=base.targets,
                     batch_views=config.batch_views or base.batch_views,
                     procedural_fraction=config.procedural_fraction, photo_textures=bool(config.photo_textures),
-                    photometric=bool(config.photometric),
+                    photometric=bool(config.photometric), mirror=bool(config.mirror),
                     view_sampler=fixed_context_gap(config.context_gap) if config.context_gap else base.view_sampler,
                     batches_per_step=config.accumulate * world)
 
