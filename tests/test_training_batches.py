@@ -80,32 +80,48 @@ def test_photometric_jitter_is_one_change_for_all_views_and_stays_in_range():
 
 
 def test_mirror_flips_half_of_the_scenes_with_their_cameras_and_leaves_the_other_draws_alone():
-    images, cameras = torch.rand(3, 3, 8, 12), _cameras(3, width=12, height=8)
+    images, cameras, depth = torch.rand(3, 3, 8, 12), _cameras(3, width=12, height=8), torch.rand(3, 8, 12)
     flipped = 0
     for seed in range(40):
-        out, cams = Augmentation(mirror=True)(images, cameras, torch.Generator().manual_seed(seed))
+        out, cams, out_depth = Augmentation(mirror=True)(images, cameras, depth, torch.Generator().manual_seed(seed))
         if torch.equal(out, images):
-            assert cams is cameras
+            assert cams is cameras and out_depth is depth
         else:
             flipped += 1
             torch.testing.assert_close(out, images.flip(-1))
+            torch.testing.assert_close(out_depth, depth.flip(-1))
             torch.testing.assert_close(cams.w2c, cameras.mirrored().w2c)
             torch.testing.assert_close(cams.K, cameras.mirrored().K)
     assert 10 <= flipped <= 30
-    jittered, _ = Augmentation(photometric=True)(images, cameras, torch.Generator().manual_seed(5))
-    both, _ = Augmentation(photometric=True, mirror=True)(images, cameras, torch.Generator().manual_seed(5))
+    jittered, _, same_depth = Augmentation(photometric=True)(images, cameras, depth, torch.Generator().manual_seed(5))
+    both = Augmentation(photometric=True, mirror=True)(images, cameras, depth, torch.Generator().manual_seed(5))[0]
     assert torch.equal(both, jittered) or torch.equal(both, jittered.flip(-1))
-    assert Augmentation()(images, cameras, torch.Generator())[0] is images
+    assert same_depth is depth and Augmentation()(images, cameras, depth, torch.Generator())[0] is images
 
 
 def test_random_crop_keeps_the_principal_ray():
     """A pixel of the crop and the ray its camera gives it come from the same place of the source image."""
     cameras = _cameras(1, width=96, height=64)
     images = (torch.arange(96 * 64) % 251).reshape(1, 1, 64, 96).expand(1, 3, 64, 96).to(torch.uint8)
-    crop, cropped = random_resized_crop(images, cameras, 32, 48, torch.Generator().manual_seed(0))
+    crop, cropped, _ = random_resized_crop(images, cameras, images[:, 0].float(), 32, 48, torch.Generator().manual_seed(0))
     scale = cropped.K[0, 0, 0] / cameras.K[0, 0, 0]
     centre_in_source = (cameras.K[0, :2, 2] - (cropped.K[0, :2, 2] - torch.tensor([24.0, 16.0])) / scale)
     assert crop.shape == (1, 3, 32, 48) and 0 <= float(centre_in_source[0]) <= 96 and 0 <= float(centre_in_source[1]) <= 64
+
+
+def test_random_crop_takes_the_depth_along_without_blending_it():
+    """Depth is cropped where the image is (a ramp image and the same ramp as depth agree after the crop),
+    nearest-sampled: every value is one of the source's, so an unknown (0) pixel never bleeds into its neighbours."""
+    cameras = _cameras(1, width=96, height=64)
+    ramp = (torch.arange(96, dtype=torch.float32) * 2.5).expand(64, 96)
+    images = ramp.round().to(torch.uint8).expand(1, 3, 64, 96).contiguous()
+    depth = ramp[None].clone()
+    depth[:, :, 40:] = 0.0
+    crop, _, crop_depth = random_resized_crop(images, cameras, depth, 32, 48, torch.Generator().manual_seed(0))
+    assert crop_depth.shape == (1, 32, 48) and set(crop_depth.unique().tolist()) <= set(depth.unique().tolist())
+    known = crop_depth > 0
+    assert bool(known.any()) and bool((~known).any())
+    assert float((crop_depth - crop[:, 0] * 255.0)[known].abs().max()) < 4.0
 
 
 def test_warm_start_copies_matching_tensors_and_reports_the_rest(tmp_path):
@@ -159,6 +175,6 @@ def test_a_training_batch_stacks_scenes():
     from train.data import TrainingSample
 
     samples = [TrainingSample(torch.rand(2, 3, 8, 8), _cameras(2, width=8, height=8), torch.rand(1, 3, 8, 8),
-                              _cameras(1, width=8, height=8), key) for key in ("a", "b")]
+                              _cameras(1, width=8, height=8), key, torch.rand(2, 8, 8)) for key in ("a", "b")]
     batch = TrainingBatch.stack(samples)
     assert batch.keys == ("a", "b") and batch.context_cameras.num_views == 4 and batch.targets_per_scene == 1

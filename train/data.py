@@ -175,6 +175,9 @@ class TrainingSample:
         context_images: float32 [V,3,H,W] in [0,1]; context_cameras: V cameras at H x W.
         target_images: float32 [T,3,H,W] in [0,1]; target_cameras: T cameras at H x W.
         key: scene name (for logs).
+        context_depth: float32 [V,H,W] reference depth of the context views (camera z, scene units; 0 where
+            none is known): exact for procedural scenes, multi-view stereo for real scenes that have it
+            (:data:`DEPTH_FOLDER`), all zero otherwise.
     """
 
     context_images: torch.Tensor
@@ -182,6 +185,7 @@ class TrainingSample:
     target_images: torch.Tensor
     target_cameras: Cameras
     key: str
+    context_depth: torch.Tensor
 
 
 @dataclass
@@ -192,6 +196,8 @@ class TrainingBatch:
         context_images: float32 [S*V,3,H,W] in [0,1]; context_cameras: the S*V cameras.
         target_images: float32 [S*T,3,H,W] in [0,1]; target_cameras: the S*T cameras.
         keys: the S scene names.
+        context_depth: float32 [S*V,H,W] reference depth of the context views, 0 where unknown
+            (:attr:`TrainingSample.context_depth`).
     """
 
     context_images: torch.Tensor
@@ -199,6 +205,7 @@ class TrainingBatch:
     target_images: torch.Tensor
     target_cameras: Cameras
     keys: tuple[str, ...]
+    context_depth: torch.Tensor
 
     @property
     def scenes(self) -> int:
@@ -213,7 +220,7 @@ class TrainingBatch:
         """The batch of ``samples`` (all of one view count and size)."""
         return cls(torch.cat([s.context_images for s in samples]), Cameras.concat([s.context_cameras for s in samples]),
                    torch.cat([s.target_images for s in samples]), Cameras.concat([s.target_cameras for s in samples]),
-                   tuple(s.key for s in samples))
+                   tuple(s.key for s in samples), torch.cat([s.context_depth for s in samples]))
 
     def scene_targets(self) -> list[Cameras]:
         """The target cameras of each scene."""
@@ -223,12 +230,12 @@ class TrainingBatch:
     def to(self, device, non_blocking: bool = False) -> "TrainingBatch":
         move = lambda t: t.to(device, non_blocking=non_blocking)  # noqa: E731
         return TrainingBatch(move(self.context_images), self.context_cameras.to(device), move(self.target_images),
-                             self.target_cameras.to(device), self.keys)
+                             self.target_cameras.to(device), self.keys, move(self.context_depth))
 
     def pin_memory(self) -> "TrainingBatch":
-        """Images in page-locked memory (the DataLoader calls this with ``pin_memory=True``)."""
+        """Images and depth in page-locked memory (the DataLoader calls this with ``pin_memory=True``)."""
         return TrainingBatch(self.context_images.pin_memory(), self.context_cameras, self.target_images.pin_memory(),
-                             self.target_cameras, self.keys)
+                             self.target_cameras, self.keys, self.context_depth.pin_memory())
 
 
 BatchSource = Callable[[int], TrainingBatch]
@@ -257,12 +264,13 @@ def photometric_jitter(images: torch.Tensor, generator: torch.Generator) -> torc
     return ((out - grey) * factor["saturation"] + grey).clamp(0.0, 1.0)
 
 
-def random_mirror(images: torch.Tensor, cameras: Cameras, generator: torch.Generator) -> tuple[torch.Tensor, Cameras]:
-    """float [N,3,H,W] views of one scene and their cameras -> the same, or with probability 1/2 all of them
-    mirrored left-right (images flipped, :meth:`Cameras.mirrored`)."""
+def random_mirror(images: torch.Tensor, cameras: Cameras, depth: torch.Tensor, generator: torch.Generator
+                  ) -> tuple[torch.Tensor, Cameras, torch.Tensor]:
+    """float [N,3,H,W] views of one scene, their cameras and depth [N,H,W] -> the same, or with probability 1/2
+    all of them mirrored left-right (images and depth flipped, :meth:`Cameras.mirrored`)."""
     if _uniform(generator, 0.0, 1.0) < 0.5:
-        return images, cameras
-    return images.flip(-1), cameras.mirrored()
+        return images, cameras, depth
+    return images.flip(-1), cameras.mirrored(), depth.flip(-1)
 
 
 @dataclass(frozen=True)
@@ -277,21 +285,23 @@ class Augmentation:
     photometric: bool = False
     mirror: bool = False
 
-    def __call__(self, images: torch.Tensor, cameras: Cameras, generator: torch.Generator
-                 ) -> tuple[torch.Tensor, Cameras]:
-        """float [N,3,H,W] in [0,1] and their cameras -> augmented ones (random numbers drawn only for the
-        augmentations that are on, so turning one off leaves the others' draws as they were)."""
+    def __call__(self, images: torch.Tensor, cameras: Cameras, depth: torch.Tensor, generator: torch.Generator
+                 ) -> tuple[torch.Tensor, Cameras, torch.Tensor]:
+        """float [N,3,H,W] in [0,1], their cameras and depth [N,H,W] -> augmented ones (random numbers drawn only
+        for the augmentations that are on, so turning one off leaves the others' draws as they were)."""
         if self.photometric:
             images = photometric_jitter(images, generator)
         if self.mirror:
-            images, cameras = random_mirror(images, cameras, generator)
-        return images, cameras
+            images, cameras, depth = random_mirror(images, cameras, depth, generator)
+        return images, cameras, depth
 
 
-def random_resized_crop(images: torch.Tensor, cameras: Cameras, height: int, width: int,
-                        generator: torch.Generator) -> tuple[torch.Tensor, Cameras]:
-    """uint8 [N,3,h,w] at the cameras' size -> float32 [N,3,height,width] in [0,1]: resized (bilinear,
-    antialiased) to cover the size times a zoom in [1, :data:`MAX_ZOOM`], cropped at a random position."""
+def random_resized_crop(images: torch.Tensor, cameras: Cameras, depth: torch.Tensor, height: int, width: int,
+                        generator: torch.Generator) -> tuple[torch.Tensor, Cameras, torch.Tensor]:
+    """uint8 [N,3,h,w] at the cameras' size and depth [N,h',w'] of the same views (any size covering the same
+    image extent; 0 = unknown) -> float32 [N,3,height,width] in [0,1], cameras and float32 depth
+    [N,height,width]: resized (images bilinear and antialiased, depth nearest, so that unknown pixels stay
+    unknown) to cover the size times a zoom in [1, :data:`MAX_ZOOM`], cropped at a random position."""
     in_h, in_w = images.shape[-2:]
     scale = max(height / in_h, width / in_w) * _uniform(generator, 1.0, MAX_ZOOM)
     scaled_h, scaled_w = max(height, round(in_h * scale)), max(width, round(in_w * scale))
@@ -300,25 +310,54 @@ def random_resized_crop(images: torch.Tensor, cameras: Cameras, height: int, wid
     resized = F.interpolate(images.float() / 255.0, size=(scaled_h, scaled_w), mode="bilinear", antialias=True,
                             align_corners=False)
     crop = resized[:, :, top:top + height, left:left + width].clamp(0.0, 1.0).contiguous()
-    return crop, cameras.rescaled(scaled_w, scaled_h).cropped(left, top, width, height)
+    depth = F.interpolate(depth.float()[:, None], size=(scaled_h, scaled_w), mode="nearest-exact")[:, 0]
+    return (crop, cameras.rescaled(scaled_w, scaled_h).cropped(left, top, width, height),
+            depth[:, top:top + height, left:left + width].contiguous())
 
 
-def cropped_sample(images: torch.Tensor, cameras: Cameras, context: int, shape: BatchShape,
+def cropped_sample(images: torch.Tensor, cameras: Cameras, depth: torch.Tensor, context: int, shape: BatchShape,
                    generator: torch.Generator, augmentation: Augmentation, key: str) -> TrainingSample:
-    """uint8 [N,3,h,w] views (the first ``context`` of them context, the rest targets) and their cameras ->
-    a :class:`TrainingSample` at the batch's size: :func:`random_resized_crop`, then ``augmentation``;
-    float32 cameras."""
-    pixels, cams = random_resized_crop(images, cameras, shape.height, shape.width, generator)
-    pixels, cams = augmentation(pixels, cams, generator)
+    """uint8 [N,3,h,w] views (the first ``context`` of them context, the rest targets), their cameras and
+    depth [N,h',w'] (0 = unknown) -> a :class:`TrainingSample` at the batch's size: :func:`random_resized_crop`,
+    then ``augmentation``; float32 cameras."""
+    pixels, cams, depth = random_resized_crop(images, cameras, depth, shape.height, shape.width, generator)
+    pixels, cams, depth = augmentation(pixels, cams, depth, generator)
     cams = cams.to(dtype=torch.float32)
     return TrainingSample(pixels[:context], cams.select(slice(0, context)), pixels[context:],
-                          cams.select(slice(context, None)), key)
+                          cams.select(slice(context, None)), key, depth[:context])
 
 
 # --------------------------------------------------------------------------------------------------
 # Scene samplers
+DEPTH_FOLDER = "mvs"
+"""A real scene's reference depth, if any: ``<scene>/mvs/depth.json`` as ``codecsplat depth SCENE -o SCENE/mvs``
+writes it (multi-view stereo depth of every view, 0 where no consistent depth was found)."""
+
+
+def reference_depth(scene_folder: pathlib.Path, frame_names: list[str], height: int, width: int) -> torch.Tensor:
+    """float32 [N,height,width] depth of a scene's frames (camera z, scene units; 0 = unknown) from its
+    :data:`DEPTH_FOLDER`, each map resized (nearest) to the image size; all zero when the scene has none.
+
+    Raises:
+        DataError: the depth folder exists but is unreadable, or lacks a depth map of one of the frames.
+    """
+    folder = scene_folder / DEPTH_FOLDER
+    if not (folder / "depth.json").is_file():
+        return torch.zeros(len(frame_names), height, width)
+    from codecsplat_warp.data.depth_maps import read_depth_maps
+
+    maps = read_depth_maps(folder)
+    row_of = {name: row for row, name in enumerate(maps.files)}
+    missing = [name for name in frame_names if name not in row_of]
+    if missing:
+        raise DataError(f"{folder}: no depth map of {missing[:3]} ({len(missing)} frames of {len(frame_names)})")
+    depth = maps.depth[[row_of[name] for name in frame_names]]
+    return F.interpolate(depth[:, None].float(), size=(height, width), mode="nearest-exact")[:, 0]
+
+
 class RealScenes:
-    """Real scenes under ``root`` (folders with ``cameras.json``), decoded once at their stored size (uint8).
+    """Real scenes under ``root`` (folders with ``cameras.json``), decoded once at their stored size (uint8),
+    with the reference depth of :func:`reference_depth` (zero where a scene has none).
 
     Instances are picklable before first use, so DataLoader workers each build their own cache.
     """
@@ -329,33 +368,35 @@ class RealScenes:
         self.root = pathlib.Path(root)
         self.names = list(names)
         self.augmentation = augmentation
-        self._cache: dict[str, tuple[torch.Tensor, Cameras]] = {}
+        self._cache: dict[str, tuple[torch.Tensor, Cameras, torch.Tensor]] = {}
 
-    def scene(self, name: str) -> tuple[torch.Tensor, Cameras]:
-        """uint8 [N,3,h,w] images and float64 cameras of a scene at its stored size (scene's own near/far)."""
+    def scene(self, name: str) -> tuple[torch.Tensor, Cameras, torch.Tensor]:
+        """uint8 [N,3,h,w] images, float64 cameras (scene's own near/far) and float32 reference depth [N,h,w]
+        (0 = unknown) of a scene at its stored size."""
         if name not in self._cache:
             from codecsplat_warp.data.scene_json import load_scene_json
 
             loaded = load_scene_json(self.root / name / "cameras.json")
-            self._cache[name] = (loaded.decoded_images(), loaded.cameras)
+            depth = reference_depth(self.root / name, loaded.frame_names, loaded.cameras.height, loaded.cameras.width)
+            self._cache[name] = (loaded.decoded_images(), loaded.cameras, depth)
         return self._cache[name]
 
     def __call__(self, generator: torch.Generator, shape: BatchShape) -> TrainingSample:
         name = self.names[int(torch.randint(len(self.names), (), generator=generator))]
-        images, cameras = self.scene(name)
+        images, cameras, depth = self.scene(name)
         anchor = int(torch.randint(cameras.num_views, (), generator=generator))
         spread = int(torch.randint(shape.views + shape.targets + 1, (), generator=generator))
         context, targets = split_context_targets(cameras, anchor, shape.views, shape.targets, spread)
         views = context + targets
-        return cropped_sample(images[views], cameras.select(views), len(context), shape, generator, self.augmentation,
-                              name)
+        return cropped_sample(images[views], cameras.select(views), depth[views], len(context), shape, generator,
+                              self.augmentation, name)
 
     def photo_crops(self, generator: torch.Generator, count: int) -> list[torch.Tensor]:
         """``count`` random square crops (uint8 [3,s,s], s between 1/4 and all of the shorter side) of random
         training photographs."""
         crops = []
         for _ in range(count):
-            images, _ = self.scene(self.names[int(torch.randint(len(self.names), (), generator=generator))])
+            images = self.scene(self.names[int(torch.randint(len(self.names), (), generator=generator))])[0]
             crops.append(random_square_crop(images[int(torch.randint(images.shape[0], (), generator=generator))],
                                             generator))
         return crops
@@ -420,8 +461,9 @@ class ChunkScenes:
             except DataError:
                 continue
             frames = list(views.context + views.target)
-            return cropped_sample(scene.decoded_images(frames), scene.cameras.select(frames), len(views.context),
-                                  shape, generator, self.augmentation, key)
+            unknown_depth = torch.zeros(len(frames), scene.cameras.height, scene.cameras.width)
+            return cropped_sample(scene.decoded_images(frames), scene.cameras.select(frames), unknown_depth,
+                                  len(views.context), shape, generator, self.augmentation, key)
         raise DataError(f"{self.root}: {MAX_SCENE_DRAWS} scenes drawn in a row are too short for {shape.views} "
                         f"context views at step {shape.step}'s context gap {context_gap_bounds(sampler, shape.step)}")
 
@@ -454,9 +496,10 @@ class ProceduralScenes:
         photos = self.textures.photo_crops(generator, PHOTO_TEXTURES_PER_SCENE) if self.textures else None
         scene = procedural_scene(int(torch.randint(2**62, (), generator=generator)), config, photo_textures=photos)
         context, targets = split_context_targets(scene.cameras, 0, shape.views, shape.targets)
-        pixels, cams = self.augmentation(scene.images.float() / 255.0, scene.cameras, generator)
+        pixels, cams, depth = self.augmentation(scene.images.float() / 255.0, scene.cameras, scene.depth, generator)
         cams = cams.to(dtype=torch.float32)
-        return TrainingSample(pixels[context], cams.select(context), pixels[targets], cams.select(targets), scene.key)
+        return TrainingSample(pixels[context], cams.select(context), pixels[targets], cams.select(targets), scene.key,
+                              depth[context])
 
 
 def batch_source(spec: DataSpec, seed: int, real: SceneSampler | None, procedural: SceneSampler | None) -> BatchSource:

@@ -2,7 +2,10 @@
 
 Loss: MSE + 0.05 * LPIPS-VGG between rendered and true target images (Eq. 14), plus the decoder depth
 head's auxiliary ``depth_aux_weight * |S_aux - S_enc|_1`` on detached inputs (it trains only that head, so
-that stage 2 starts with one; see :class:`codecsplat_warp.model.CodecSplat`). AdamW (lr 1e-4, weight decay
+that stage 2 starts with one; see :class:`codecsplat_warp.model.CodecSplat`), plus with ``--depth-weight W``
+the depth supervision ``W * |log D_enc - log D_ref|_1`` on the context pixels whose reference depth is known
+(:func:`reference_depth_loss`; the exact depth of procedural scenes, and for real scenes the multi-view stereo
+depth that ``codecsplat depth`` wrote into their ``mvs/`` folder: see :data:`train.data.DEPTH_FOLDER`). AdamW (lr 1e-4, weight decay
 0.01), linear warm-up then cosine decay to 10 %, gradient-norm clipping, bf16 autocast on CUDA (fp32 on
 CPU). After every optimiser step an exponential moving average of the trainable weights is updated
 (``--ema-decay``, default 0.999, warmed up as :func:`train.weight_average.warmed_up_decay`; 0 keeps none): it is
@@ -104,10 +107,11 @@ class TrainConfig:
     mono_weights: str = ""
     init: str = ""
     depth_aux_weight: float = 0.1
+    depth_weight: float = 0.0
     ema_decay: float = 0.999
 
 
-LOGGED = ("loss", "mse", "lpips", "psnr", "depth_aux", "grad_norm", "lr")
+LOGGED = ("loss", "mse", "lpips", "psnr", "depth_aux", "depth_ref", "depth_ref_pixels", "grad_norm", "lr")
 """Training metrics written every ``log_every`` steps (TensorBoard and :data:`METRICS_FILE`), averaged over the
 step's batches (micro-batches and DDP ranks); each record also has ``step``, ``elapsed_s`` (wall seconds since
 this process started training, resumed chunks restart it), ``scenes`` (global scenes in the record's step)
@@ -154,9 +158,28 @@ def render_distortion(rgb: torch.Tensor, target: torch.Tensor, lpips: LPIPS, lpi
             "psnr": psnr(rgb.detach(), target).mean()}
 
 
+def reference_depth_loss(depth: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Masked log-depth L1: mean of |log depth - log reference| over the pixels whose reference is known.
+
+    Args:
+        depth: float [V,H,W] predicted depth (> 0, scene units).
+        reference: float [V,H,W] reference depth, 0 where unknown.
+
+    Returns:
+        (loss, share of pixels with a reference) as 0-dim float32 tensors; the loss is 0 (with a zero gradient)
+        when no pixel has a reference. The log makes it scale-free: 0.01 is a 1 % depth error in any scene's units.
+    """
+    known = reference > 0
+    error = (depth.float().clamp_min(1e-6).log() - torch.where(known, reference.float(), 1.0).log()).abs()
+    count = known.sum()
+    return (error * known).sum() / count.clamp_min(1), count.float() / known.numel()
+
+
 def stage1_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBatch, config: "TrainConfig") -> tuple[torch.Tensor, dict]:
-    """Eq. 14 with D_render = MSE + lpips_weight * LPIPS-VGG, plus the depth head's auxiliary; returns (loss,
-    metrics as detached 0-dim tensors, read back only when logged).
+    """Eq. 14 with D_render = MSE + lpips_weight * LPIPS-VGG, plus the depth head's auxiliary and, with
+    ``depth_weight``, :func:`reference_depth_loss` of ``D_enc`` against the batch's reference depth (exact for
+    procedural scenes, multi-view stereo for real ones); returns (loss, metrics as detached 0-dim tensors,
+    read back only when logged).
 
     ``model`` may be the DDP wrapper; rendering uses the bare module.
     """
@@ -167,9 +190,11 @@ def stage1_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBatch, conf
     parts = render_distortion(render_targets(bare, out["gaussians"], batch), batch.target_images, lpips,
                               config.lpips_weight)
     depth_aux = (out["S_aux"].float() - out["S_enc"].detach().float()).abs().mean()
-    loss = parts["render"] + config.depth_aux_weight * depth_aux
+    depth_ref, known = reference_depth_loss(out["D_enc"], batch.context_depth)
+    loss = parts["render"] + config.depth_aux_weight * depth_aux + config.depth_weight * depth_ref
     return loss, {"loss": loss.detach(), "mse": parts["mse"].detach(), "lpips": parts["lpips"].detach(),
-                  "psnr": parts["psnr"], "depth_aux": depth_aux.detach()}
+                  "psnr": parts["psnr"], "depth_aux": depth_aux.detach(), "depth_ref": depth_ref.detach(),
+                  "depth_ref_pixels": known}
 
 
 def make_optimizer(model: torch.nn.Module, config: TrainConfig):

@@ -11,12 +11,15 @@ grown into it (:meth:`LatentCodec.grow_from`). Only the codec, the depth head an
 PREFIX,...`` narrows that to the parameters named so, e.g. a grown codec's new levels); everything else is
 frozen. Per step, lambda is drawn log-uniformly from [16, 1024] and the loss is
 
-    (lambda / 1024) * [D_render + gamma * |S - S_enc|_1 + alpha(step) * |F^_c - F_c|^2 / |F_c|^2] + beta * R
+    (lambda / 1024) * [D_render + gamma * |S - S_enc|_1 + W * |log D^ - log D_ref|_1
+                       + alpha(step) * |F^_c - F_c|^2 / |F_c|^2] + beta * R
 
 with D_render = MSE + 0.05 LPIPS-VGG (as in stage 1), S the decoder's normalised inverse depth (Eq. 9),
 S_enc the encoder's (Eq. 18), gamma = 0.1 and R the estimated rate in bits per context pixel (Eq. 7
 divided by the batch's V*H*W: D_render is a per-pixel mean, and the paper's beta only balances it in these
-units). beta defaults to 1e-4 for the dl3dv preset and 4e-4 otherwise (RE10K). Over the first
+units). The W term (``--depth-weight``, default 0: off) supervises the decoder depth D^ (Eq. 10) with the
+batch's reference depth where it is known, as stage 1 does D_enc (:func:`train.stage1.reference_depth_loss`).
+beta defaults to 1e-4 for the dl3dv preset and 4e-4 otherwise (RE10K). Over the first
 ``--rate-warmup-steps`` steps beta ramps up linearly from 0 (rate annealing): a fresh codec's decoder cannot
 use its latents yet, and a full rate penalty from the start drives every latent to the prior (posterior
 collapse) before it learns to.
@@ -61,8 +64,8 @@ RATE_WEIGHTS = {"dl3dv": 1e-4}
 
 DEFAULT_RATE_WEIGHT = 4e-4
 
-LOGGED = ("loss", "mse", "lpips", "psnr", "depth_l1", "feature_error", "feature_weight", "lambda", "bits", "bpp",
-          "grad_norm", "lr", "coded_bits", "coded_estimate_bits", "rate_gap", "train_rate_gap")
+LOGGED = ("loss", "mse", "lpips", "psnr", "depth_l1", "depth_ref", "depth_ref_pixels", "feature_error", "feature_weight",
+          "lambda", "bits", "bpp", "grad_norm", "lr", "coded_bits", "coded_estimate_bits", "rate_gap", "train_rate_gap")
 """Metrics written every ``log_every`` steps (the coded_* ones only on steps that encode)."""
 
 
@@ -129,15 +132,17 @@ def stage2_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBatch, conf
     parts = stage1.render_distortion(stage1.render_targets(bare, out["gaussians"], batch), batch.target_images,
                                      lpips, config.lpips_weight)
     depth_l1 = (out["S"].float() - out["S_enc"].detach().float()).abs().mean()
+    depth_ref, known = stage1.reference_depth_loss(out["D_hat"], batch.context_depth)
     target = out["F_c"].detach().float()
     feature_error = (out["F_hat"].float() - target).square().mean() / target.square().mean().clamp_min(1e-12)
     alpha = feature_weight(config, step)
     bpp = out["rate_bits"] / images[:, 0].numel()
-    distortion = parts["render"] + config.gamma * depth_l1 + alpha * feature_error
+    distortion = parts["render"] + config.gamma * depth_l1 + config.depth_weight * depth_ref + alpha * feature_error
     beta = rate_weight(config, bare.config) * rate_ramp(step, config.rate_warmup_steps)
     loss = lam / LAMBDA_MAX * distortion + beta * bpp
     metrics = {"loss": loss.detach(), "mse": parts["mse"].detach(), "lpips": parts["lpips"].detach(),
-               "depth_l1": depth_l1.detach(), "psnr": parts["psnr"], "feature_error": feature_error.detach(),
+               "depth_l1": depth_l1.detach(), "depth_ref": depth_ref.detach(), "depth_ref_pixels": known,
+               "psnr": parts["psnr"], "feature_error": feature_error.detach(),
                "feature_weight": alpha, "lambda": lam, "bits": out["rate_bits"].detach() / batch.scenes,
                "bpp": bpp.detach()}
     if (step + 1) % config.coded_every == 0:

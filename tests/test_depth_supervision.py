@@ -1,0 +1,62 @@
+"""Depth supervision of training: the masked log-depth loss, reference depth in batches (exact for procedural
+scenes), and its gradient reaching the encoder."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from conftest import LPIPS_WEIGHTS as WEIGHTS
+from conftest import needs_lpips
+
+from train.data import DataSpec, make_source
+from train.stage1 import TrainConfig, reference_depth_loss, stage1_loss
+
+from codecsplat_warp.metrics import LPIPS
+from codecsplat_warp.model import CodecSplat
+from codecsplat_warp.nn.config import get_preset
+
+
+def test_reference_depth_loss_is_the_mean_log_error_over_known_pixels():
+    reference = torch.full((2, 4, 5), 2.0)
+    reference[0, :2] = 0.0                                   # unknown pixels, whatever the prediction there
+    depth = (reference * 1.1).clamp_min(0.5)
+    depth[0, :2] = 100.0
+    loss, share = reference_depth_loss(depth, reference)
+    assert float(loss) == pytest.approx(math.log(1.1), rel=1e-5)
+    assert float(share) == pytest.approx(30 / 40)
+
+
+def test_reference_depth_loss_without_references_is_zero_with_a_zero_gradient():
+    depth = torch.rand(1, 3, 3, requires_grad=True)
+    loss, share = reference_depth_loss(depth + 0.5, torch.zeros(1, 3, 3))
+    loss.backward()
+    assert float(loss.detach()) == 0.0 and float(share) == 0.0 and torch.equal(depth.grad, torch.zeros_like(depth))
+
+
+def test_procedural_batches_carry_their_exact_depth():
+    spec = DataSpec(views=(2,), sizes=((32, 48),), targets=1, batch_views=4, mirror=True)
+    batch = make_source("procedural", spec, seed=1)(0)
+    assert batch.context_depth.shape == (4, 32, 48) and batch.context_depth.dtype == torch.float32
+    near = batch.context_cameras.near.float()[:, None, None]
+    far = batch.context_cameras.far.float()[:, None, None]
+    assert bool((batch.context_depth >= near).all()) and bool((batch.context_depth <= far).all())
+
+
+@needs_lpips
+def test_depth_weight_sends_the_reference_depth_into_the_encoder_gradient():
+    torch.manual_seed(0)
+    model = CodecSplat(get_preset("tiny")).train()
+    lpips = LPIPS(weights_dir=WEIGHTS)
+    batch = make_source("procedural", DataSpec(views=(2,), sizes=((32, 48),), targets=1, batch_views=2), seed=2)(0)
+
+    def encoder_gradient(weight: float) -> torch.Tensor:
+        model.zero_grad(set_to_none=True)
+        loss, metrics = stage1_loss(model, lpips, batch, TrainConfig(depth_weight=weight))
+        loss.backward()
+        assert float(metrics["depth_ref_pixels"]) == 1.0 and float(metrics["depth_ref"]) > 0.0
+        return torch.cat([p.grad.flatten() for p in model.mvenc.parameters() if p.grad is not None])
+
+    without, with_depth = encoder_gradient(0.0), encoder_gradient(1.0)
+    assert not torch.allclose(without, with_depth)
