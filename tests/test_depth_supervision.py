@@ -1,5 +1,5 @@
-"""Depth supervision of training: the masked log-depth loss, reference depth in batches (exact for procedural
-scenes), and its gradient reaching the encoder."""
+"""Geometry supervision of training: the masked log-depth loss, reference depth in batches (exact for procedural
+scenes), its gradient reaching the encoder, and the render loss on the context views themselves."""
 
 from __future__ import annotations
 
@@ -60,3 +60,16 @@ def test_depth_weight_sends_the_reference_depth_into_the_encoder_gradient():
 
     without, with_depth = encoder_gradient(0.0), encoder_gradient(1.0)
     assert not torch.allclose(without, with_depth)
+
+
+@needs_lpips
+def test_self_render_weight_scores_the_context_views_and_adds_their_render_loss():
+    torch.manual_seed(0)
+    model = CodecSplat(get_preset("tiny")).train()
+    lpips = LPIPS(weights_dir=WEIGHTS)
+    batch = make_source("procedural", DataSpec(views=(2,), sizes=((32, 48),), targets=1, batch_views=4), seed=3)(0)
+    plain, plain_metrics = stage1_loss(model, lpips, batch, TrainConfig())
+    torch.manual_seed(0)
+    both, metrics = stage1_loss(model, lpips, batch, TrainConfig(self_render_weight=0.5))
+    assert "self_psnr" not in plain_metrics and 5.0 < float(metrics["self_psnr"]) < 60.0
+    assert float(both.detach()) > float(plain.detach())

@@ -227,6 +227,11 @@ class TrainingBatch:
         T = self.targets_per_scene
         return [self.target_cameras.select(slice(s * T, (s + 1) * T)) for s in range(self.scenes)]
 
+    def scene_contexts(self) -> list[Cameras]:
+        """The context cameras of each scene."""
+        V = self.context_cameras.num_views // self.scenes
+        return [self.context_cameras.select(slice(s * V, (s + 1) * V)) for s in range(self.scenes)]
+
     def to(self, device, non_blocking: bool = False) -> "TrainingBatch":
         move = lambda t: t.to(device, non_blocking=non_blocking)  # noqa: E731
         return TrainingBatch(move(self.context_images), self.context_cameras.to(device), move(self.target_images),

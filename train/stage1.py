@@ -5,7 +5,9 @@ head's auxiliary ``depth_aux_weight * |S_aux - S_enc|_1`` on detached inputs (it
 that stage 2 starts with one; see :class:`codecsplat_warp.model.CodecSplat`), plus with ``--depth-weight W``
 the depth supervision ``W * |log D_enc - log D_ref|_1`` on the context pixels whose reference depth is known
 (:func:`reference_depth_loss`; the exact depth of procedural scenes, and for real scenes the multi-view stereo
-depth that ``codecsplat depth`` wrote into their ``mvs/`` folder: see :data:`train.data.DEPTH_FOLDER`). AdamW (lr 1e-4, weight decay
+depth that ``codecsplat depth`` wrote into their ``mvs/`` folder: see :data:`train.data.DEPTH_FOLDER`), plus
+with ``--self-render-weight W`` the same render loss on the context views themselves (``W * D_render`` of the
+Gaussians rendered into their own context cameras: pixel-aligned Gaussians should reproduce their input). AdamW (lr 1e-4, weight decay
 0.01), linear warm-up then cosine decay to 10 %, gradient-norm clipping, bf16 autocast on CUDA (fp32 on
 CPU). After every optimiser step an exponential moving average of the trainable weights is updated
 (``--ema-decay``, default 0.999, warmed up as :func:`train.weight_average.warmed_up_decay`; 0 keeps none): it is
@@ -108,10 +110,11 @@ class TrainConfig:
     init: str = ""
     depth_aux_weight: float = 0.1
     depth_weight: float = 0.0
+    self_render_weight: float = 0.0
     ema_decay: float = 0.999
 
 
-LOGGED = ("loss", "mse", "lpips", "psnr", "depth_aux", "depth_ref", "depth_ref_pixels", "grad_norm", "lr")
+LOGGED = ("loss", "mse", "lpips", "psnr", "depth_aux", "depth_ref", "depth_ref_pixels", "self_psnr", "grad_norm", "lr")
 """Training metrics written every ``log_every`` steps (TensorBoard and :data:`METRICS_FILE`), averaged over the
 step's batches (micro-batches and DDP ranks); each record also has ``step``, ``elapsed_s`` (wall seconds since
 this process started training, resumed chunks restart it), ``scenes`` (global scenes in the record's step)
@@ -142,11 +145,12 @@ def lr_factor(step: int, warmup: int, total: int) -> float:
     return 0.1 + 0.9 * 0.5 * (1.0 + math.cos(math.pi * progress))
 
 
-def render_targets(model: CodecSplat, gaussians: Gaussians, batch: TrainingBatch) -> torch.Tensor:
+def render_targets(model: CodecSplat, gaussians: Gaussians, batch: TrainingBatch, context: bool = False) -> torch.Tensor:
     """[S*T,3,H,W]: each scene's Gaussians (view-major, see ``CodecSplat.forward(scenes=...)``) rendered into
-    that scene's target cameras."""
+    that scene's target cameras; with ``context``, [S*V,3,H,W] rendered into its own context cameras."""
     per_scene = gaussians.split(batch.scenes)
-    return torch.cat([model.render(g, cameras)["rgb"] for g, cameras in zip(per_scene, batch.scene_targets())])
+    cameras = batch.scene_contexts() if context else batch.scene_targets()
+    return torch.cat([model.render(g, c)["rgb"] for g, c in zip(per_scene, cameras)])
 
 
 def render_distortion(rgb: torch.Tensor, target: torch.Tensor, lpips: LPIPS, lpips_weight: float) -> dict:
@@ -192,9 +196,14 @@ def stage1_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBatch, conf
     depth_aux = (out["S_aux"].float() - out["S_enc"].detach().float()).abs().mean()
     depth_ref, known = reference_depth_loss(out["D_enc"], batch.context_depth)
     loss = parts["render"] + config.depth_aux_weight * depth_aux + config.depth_weight * depth_ref
-    return loss, {"loss": loss.detach(), "mse": parts["mse"].detach(), "lpips": parts["lpips"].detach(),
-                  "psnr": parts["psnr"], "depth_aux": depth_aux.detach(), "depth_ref": depth_ref.detach(),
-                  "depth_ref_pixels": known}
+    metrics = {"psnr": parts["psnr"], "depth_aux": depth_aux.detach(), "depth_ref": depth_ref.detach(),
+               "depth_ref_pixels": known}
+    if config.self_render_weight > 0:
+        own = render_distortion(render_targets(bare, out["gaussians"], batch, context=True), batch.context_images,
+                                lpips, config.lpips_weight)
+        loss = loss + config.self_render_weight * own["render"]
+        metrics["self_psnr"] = own["psnr"]
+    return loss, {"loss": loss.detach(), "mse": parts["mse"].detach(), "lpips": parts["lpips"].detach(), **metrics}
 
 
 def make_optimizer(model: torch.nn.Module, config: TrainConfig):
