@@ -138,6 +138,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--renders", action="store_true",
                           help="also write OUT/renders/SCENE-N.png per sample: its targets by every method beside the "
                           "ground truth")
+    evaluate.add_argument("--mvs-depth", help="folder of reference depth, DIR/<scene>/depth.json (codecsplat depth): "
+                          "scores the encoder and decoder depth of the context views")
     evaluate.add_argument("-o", "--out", default="codecsplat-eval", help="output folder (default ./codecsplat-eval)")
 
     selfcheck = sub.add_parser("selfcheck", help="every kernel vs its float64 reference (--device auto: every device)")
@@ -404,7 +406,7 @@ def _cmd_eval(args) -> int:
                         kmeans_iterations=args.kmeans_iterations, progress=not args.json,
                         scenes=tuple(name.strip() for name in args.scenes.split(",") if name.strip()),
                         index=args.index, size=_size(args.size) if args.size else None, resume=not args.restart,
-                        renders=args.renders)
+                        renders=args.renders, mvs_depth=args.mvs_depth)
     result = evaluate(model, config, device)
     lines = [f"{len(result['scenes'])} scene(s), {args.protocol} protocol, {result['machine']}",
              "", "Table 1", result["tables"]["table1"], "", "Table 2 (seconds)", result["tables"]["table2"], "",
