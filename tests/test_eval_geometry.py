@@ -229,3 +229,39 @@ def test_rate_distortion_plot_has_an_lpips_vgg_panel_with_the_copy_floor(tmp_pat
     assert panel.get_xlabel() == "KiB per scene" and len(fig.axes) == 4
     dashed = [line for line in panel.get_lines() if line.get_linestyle() == "--"]
     assert len(dashed) == 1 and list(dashed[0].get_ydata()) == [0.39, 0.39]
+
+
+def _stage1_run(folder) -> CodecSplat:
+    """A run folder (config.json + one checkpoint) of a tiny stage-1 model, without codec."""
+    from train.checkpoint import save_checkpoint
+    from train.stage1 import TrainConfig, make_optimizer
+
+    torch.manual_seed(3)
+    model = CodecSplat(get_preset("tiny"), codec=False)
+    optimizer, scheduler = make_optimizer(model, TrainConfig(steps=1))
+    save_checkpoint(folder, 1, model, optimizer, scheduler, {})
+    (folder / "config.json").write_text(json.dumps({"train": {}, "model": get_preset("tiny").to_dict()}))
+    return model.eval()
+
+
+def test_validation_of_a_stage1_run_reports_self_render_and_encoder_depth(scenes, tmp_path, capsys):
+    from train.validate import main, score_sample
+
+    model = _stage1_run(tmp_path / "run")
+    first, second = _samples(scenes)
+    _reference_from(model, first, tmp_path / "mvs", 1.1)
+    reference = ReferenceDepth(tmp_path / "mvs")
+    score = score_sample(model, first, torch.device("cpu"), reference)
+    assert score.depth_abs_rel == pytest.approx(0.1 / 1.1, abs=2e-4) and score.depth_delta_1_25 == 1.0
+    assert 0 < score.self_render_psnr < 60 and score.model_psnr > 0
+    assert score_sample(model, second, torch.device("cpu"), reference).depth_abs_rel is None  # no reference
+    main(["--run", str(tmp_path / "run"), "--data", str(scenes / "data"), "--index", str(scenes / "index.json"),
+          "--mvs-depth", str(tmp_path / "mvs"), "--device", "cpu"])  # re10k protocol: 256x256
+    summary = json.loads((tmp_path / "run" / "validation-re10k.json").read_text())
+    a, b = summary["scenes"]
+    assert a["depth_abs_rel"] is not None and b["depth_abs_rel"] is None and summary["depth_samples"] == 1
+    assert summary["depth_abs_rel"] == a["depth_abs_rel"] and summary["mvs_depth"] == str(tmp_path / "mvs")
+    assert summary["self_render_psnr"] == pytest.approx((a["self_render_psnr"] + b["self_render_psnr"]) / 2)
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[0].split() == ["scene", "model", "dB", "nearest", "dB", "self", "dB", "AbsRel", "δ<1.25"]
+    assert printed[2].split()[-2:] == ["-", "-"] and "depth over 1 of 2 samples" in printed[3]
