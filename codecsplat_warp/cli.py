@@ -2,7 +2,8 @@
 
 Commands: ``demo`` (the shipped model on a built-in scene), ``encode`` (scene -> bitstream), ``decode``
 (bitstream -> 3DGS PLY), ``render`` (bitstream -> frames, GIF or MP4), ``eval`` (the paper's tables with
-baselines), ``bench`` (benchmarks) and ``selfcheck`` (kernels against float64 references).
+baselines), ``depth`` (multi-view stereo depth maps of a posed scene), ``bench`` (benchmarks) and ``selfcheck``
+(kernels against float64 references).
 
 Exit codes: 0 success, 1 user error (bad arguments or input, reported as one line without a traceback),
 2 internal error (a bug: the traceback is printed). Every command takes ``--device cpu|cuda|auto`` and
@@ -138,7 +139,11 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--renders", action="store_true",
                           help="also write OUT/renders/SCENE-N.png per sample: its targets by every method beside the "
                           "ground truth")
+    evaluate.add_argument("--mvs-depth", help="folder of reference depth, DIR/<scene>/depth.json (codecsplat depth): "
+                          "scores the encoder and decoder depth of the context views")
     evaluate.add_argument("-o", "--out", default="codecsplat-eval", help="output folder (default ./codecsplat-eval)")
+
+    _depth_parser(sub)
 
     selfcheck = sub.add_parser("selfcheck", help="every kernel vs its float64 reference (--device auto: every device)")
     _common(selfcheck)
@@ -151,6 +156,44 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--out", help="write the JSON result to this file")
         importlib.import_module(module).add_arguments(p)
     return parser
+
+
+def _depth_parser(sub) -> None:
+    from .ops.mvs import MVSConfig
+
+    d = MVSConfig()
+    depth = sub.add_parser("depth", help="multi-view stereo depth of every view of a posed scene -> 16-bit PNG depth "
+                           "maps, masks, previews and depth.json")
+    _common(depth)
+    depth.add_argument("scene", help="scene folder or pose file (cameras.json, transforms.json, LLFF, COLMAP, ...) "
+                       "with at least 3 posed views")
+    depth.add_argument("-o", "--out", required=True, help="output folder (depth/, mask/, preview/, depth.json)")
+    depth.add_argument("--max-size", type=int, metavar="PX",
+                       help="compute at the images resized so their long side is at most PX pixels (default: the "
+                       "stored size)")
+    depth.add_argument("--planes", type=int, default=d.num_planes,
+                       help=f"sweep planes, uniform in inverse depth between near and far (default {d.num_planes})")
+    depth.add_argument("--sources", type=int, default=d.num_sources,
+                       help=f"source views per view, at most 8 (default {d.num_sources})")
+    depth.add_argument("--window-radius", type=int, default=d.window_radius,
+                       help=f"NCC window half-size in samples (default {d.window_radius}: 5x5 samples)")
+    depth.add_argument("--window-step", type=int, default=d.window_step,
+                       help=f"pixels between NCC window samples (default {d.window_step})")
+    depth.add_argument("--min-ncc", type=float, default=d.min_ncc,
+                       help=f"smallest aggregated NCC of a confident depth, in [-1, 1] (default {d.min_ncc:g})")
+    depth.add_argument("--min-texture", type=float, default=d.min_texture,
+                       help=f"smallest grey-level standard deviation (0-1 scale) of a confident window (default "
+                       f"{d.min_texture:g})")
+    depth.add_argument("--consistent-views", type=int, default=d.min_consistent_views,
+                       help=f"source views that must agree with a depth to keep it (default {d.min_consistent_views})")
+    depth.add_argument("--max-reprojection", type=float, default=d.max_reprojection_px,
+                       help=f"largest reprojection error of an agreeing view, in pixels (default "
+                       f"{d.max_reprojection_px:g})")
+    depth.add_argument("--max-relative-depth", type=float, default=d.max_relative_depth,
+                       help=f"largest relative depth difference of an agreeing view (default {d.max_relative_depth:g} "
+                       "= 1 %%)")
+    depth.add_argument("--allow-unmatched", action="store_true",
+                       help="write an empty depth map for a view without a usable source view instead of failing")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -404,7 +447,7 @@ def _cmd_eval(args) -> int:
                         kmeans_iterations=args.kmeans_iterations, progress=not args.json,
                         scenes=tuple(name.strip() for name in args.scenes.split(",") if name.strip()),
                         index=args.index, size=_size(args.size) if args.size else None, resume=not args.restart,
-                        renders=args.renders)
+                        renders=args.renders, mvs_depth=args.mvs_depth)
     result = evaluate(model, config, device)
     lines = [f"{len(result['scenes'])} scene(s), {args.protocol} protocol, {result['machine']}",
              "", "Table 1", result["tables"]["table1"], "", "Table 2 (seconds)", result["tables"]["table2"], "",
@@ -412,6 +455,31 @@ def _cmd_eval(args) -> int:
     if result["skipped"]:
         lines.append("skipped: " + ", ".join(s["scene"] for s in result["skipped"]))
     lines.append("wrote " + ", ".join(result["files"].values()))
+    _emit(args, result, lines)
+    return EXIT_OK
+
+
+def _cmd_depth(args) -> int:
+    from .depth import DepthRun, write_scene_depth
+    from .ops.mvs import MVSConfig
+
+    if args.max_size is not None and args.max_size < 16:
+        raise UsageError(f"--max-size must be at least 16 pixels, got {args.max_size}")
+    config = MVSConfig(num_planes=args.planes, num_sources=args.sources, window_radius=args.window_radius,
+                       window_step=args.window_step, min_ncc=args.min_ncc, min_texture=args.min_texture,
+                       min_consistent_views=args.consistent_views, max_reprojection_px=args.max_reprojection,
+                       max_relative_depth=args.max_relative_depth, allow_unmatched=args.allow_unmatched)
+    device = _device(args)
+    result = write_scene_depth(DepthRun(scene=args.scene, out=args.out, config=config, max_size=args.max_size,
+                                        progress=not args.json), device)  # fmt: skip
+    views = len(result["frames"])
+    coverage = sum(frame["coverage"] for frame in result["frames"]) / views
+    lines = [f"depth maps of {args.scene} at {result['width']}x{result['height']} on {device} -> {args.out}/",
+             f"  {'views':<16s}{views:>10d}", f"  {'mean coverage':<16s}{coverage:>10.1%}",
+             f"  {'seconds':<16s}{result['seconds']:>10.2f}", f"  {'seconds / view':<16s}{result['seconds'] / views:>10.3f}"]
+    unmatched = [frame["file"] for frame in result["frames"] if not frame["sources"]]
+    if unmatched:
+        lines.append(f"  no usable source view, empty depth map: {', '.join(unmatched)}")
     _emit(args, result, lines)
     return EXIT_OK
 
@@ -444,7 +512,7 @@ def _cmd_bench(args) -> int:
 
 
 COMMANDS = {"demo": _cmd_demo, "encode": _cmd_encode, "decode": _cmd_decode, "render": _cmd_render,
-            "eval": _cmd_eval, "selfcheck": _cmd_selfcheck, "bench": _cmd_bench}
+            "eval": _cmd_eval, "depth": _cmd_depth, "selfcheck": _cmd_selfcheck, "bench": _cmd_bench}
 
 
 def main(argv: list[str] | None = None) -> int:

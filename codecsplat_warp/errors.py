@@ -40,3 +40,8 @@ class BitstreamError(CodecSplatError):
 
 class RasterMemoryError(CodecSplatError, MemoryError):
     """Rasterization would need more intersection buffer memory than the configured budget."""
+
+
+class MVSError(CodecSplatError, ValueError):
+    """A scene cannot give multi-view stereo depth: fewer than 3 views, or a view without a usable source view
+    (none overlaps it with a useful baseline). The message names the view."""

@@ -12,7 +12,7 @@ from codecsplat_warp.errors import DataError, InputError
 from codecsplat_warp.data import split_context_targets
 from codecsplat_warp.eval.evaluate import EvalConfig, evaluate
 from codecsplat_warp.eval.protocols import PROTOCOLS, find_scenes, folder_index_plan, select_scenes
-from codecsplat_warp.eval.report import Row, format_bytes, summarize, table1, table2
+from codecsplat_warp.eval.report import Row, format_bytes, summarize, table1, table2, table3
 from test_cli_commands import write_scene
 
 
@@ -88,22 +88,36 @@ def test_bad_options_are_input_errors_before_any_work(tmp_path, changes, match):
     assert not (tmp_path / "out").exists()
 
 
-def _row(scene, method, setting, size, psnr, lam=None, seconds=(1.0, 2.0, 3.0)):
-    return Row(scene, method, setting, size, {"psnr": psnr, "ssim": 0.5}, *seconds, lam=lam)
+def _row(scene, method, setting, size, psnr, lam=None, seconds=(1.0, 2.0, 3.0), self_psnr=None, depth=None):
+    return Row(scene, method, setting, size, {"psnr": psnr, "ssim": 0.5}, *seconds, lam=lam,
+               self_render=None if self_psnr is None else {"psnr": self_psnr, "ssim": 0.9}, depth=depth)
 
 
 def test_summary_means_and_paper_tables():
-    rows = [_row("a", "CodecSplat", "λ=16", 1000, 20.0, 16.0), _row("b", "CodecSplat", "λ=16", 3000, 22.0, 16.0),
-            _row("a", "CodecSplat", "λ=1024", 5000, 25.0, 1024.0, (1.0, 4.0, 5.0)),
-            _row("a", "CodecSplat w/o codec→PNG", "K_SH=8192", 3 * 2**20, 26.0)]
+    scored = {"abs_rel": 0.2, "delta_1_25": 0.5}
+    rows = [_row("a", "CodecSplat", "λ=16", 1000, 20.0, 16.0, self_psnr=24.0, depth=scored),
+            _row("b", "CodecSplat", "λ=16", 3000, 22.0, 16.0, self_psnr=26.0, depth={}),  # no reference depth
+            _row("a", "CodecSplat", "λ=1024", 5000, 25.0, 1024.0, (1.0, 4.0, 5.0), self_psnr=30.0, depth={}),
+            _row("a", "CodecSplat w/o codec→PNG", "K_SH=8192", 3 * 2**20, 26.0, self_psnr=31.0),
+            _row("a", "Copy nearest context view", "no bitstream", 0, 15.0, seconds=(0.0, 0.0, 0.0))]
     summary = summarize(rows)
     assert [(s["method"], s["samples"]) for s in summary] == [("CodecSplat", 2), ("CodecSplat", 1),
-                                                               ("CodecSplat w/o codec→PNG", 1)]
-    assert summary[0]["bytes"] == 2000 and summary[0]["psnr"] == 21.0
+                                                               ("CodecSplat w/o codec→PNG", 1),
+                                                               ("Copy nearest context view", 1)]
+    assert summary[0]["bytes"] == 2000 and summary[0]["psnr"] == 21.0 and summary[0]["self_psnr"] == 25.0
+    assert (summary[0]["depth_samples"], summary[0]["depth_abs_rel"]) == (1, 0.2)  # the mean over scored samples
+    assert summary[1]["depth_samples"] == 0 and "depth_abs_rel" not in summary[1]
+    assert "depth_samples" not in summary[2] and not summary[3]["gaussians"]
     first = table1(summary).splitlines()
     assert first[0].startswith("| Method | Codec Setting | Bytes/scene") and "LPIPS-Alex" in first[0]
-    assert first[2].startswith("| CodecSplat w/o codec→PNG | K_SH=8192 | 3.00 MiB | 26.00 | 0.500 | n/a | n/a |")
-    assert first[3] == "| CodecSplat | λ=16 | 1.95 KiB | 21.00 | 0.500 | n/a | n/a |"
+    assert first[0].endswith("| Self-render PSNR ↑ | Depth AbsRel ↓ | Depth δ<1.25 ↑ |")
+    assert first[2] == ("| CodecSplat w/o codec→PNG | K_SH=8192 | 3.00 MiB | 26.00 | 0.500 | n/a | n/a | 31.00 | - "
+                        "| - |")
+    assert first[3] == "| Copy nearest context view | no bitstream | 0.00 KiB | 15.00 | 0.500 | n/a | n/a | - | - | - |"
+    assert first[4] == "| CodecSplat | λ=16 | 1.95 KiB | 21.00 | 0.500 | n/a | n/a | 25.00 | 0.200 | 0.500 |"
+    assert first[5].endswith("| 30.00 | n/a | n/a |")  # a depth map, but no sample had reference depth
+    third = table3(summary).splitlines()
+    assert third[4] == "| CodecSplat | λ=16 | 25.00 | 0.900 | n/a | n/a | 0.200 | 0.500 | 1 |"
     second = table2(summary).splitlines()
     assert second[-1] == "| CodecSplat | λ=16,…,1024 | 1.000 | 3.000 | 4.000 |"
     assert format_bytes(1536) == "1.50 KiB" and format_bytes(2**20) == "1.00 MiB"

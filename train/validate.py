@@ -1,12 +1,19 @@
-"""Held-out validation of a training run: codec-free target-view PSNR on fixed held-out samples.
+"""Held-out validation of a training run: codec-free target-view PSNR, self-render PSNR and depth error on fixed
+held-out samples.
 
 The samples are the entries of an evaluation index file (scene folder -> context and target frames, e.g.
-``train/heldout/index-re10k.json``) under ``--data``, preprocessed to the ``--protocol`` size as
+``train/heldout_index/index-re10k.json``) under ``--data``, preprocessed to the ``--protocol`` size as
 ``codecsplat eval`` does (:func:`codecsplat_warp.eval.protocols.index_samples`). Each is rendered by the run's
-latest checkpoint (its weight average where it keeps one: :func:`train.checkpoint.weights_for_use`) and
-compared with the "copy the nearest context view" baseline. PSNR on [0,1]-clipped images.
+latest checkpoint (its weight average where it keeps one: :func:`train.checkpoint.weights_for_use`; a stage-1
+checkpoint without codec too) and compared with the "copy the nearest context view" baseline. PSNR on
+[0,1]-clipped images. Also per sample: the codec-free Gaussians rendered into their own context views (self-render
+PSNR against the context images) and, with ``--mvs-depth DIR`` (``DIR/<scene>/depth.json`` of ``codecsplat
+depth``), the encoder depth ``D_enc`` against the context views' reference depth (AbsRel and delta<1.25 over the
+pixels with reference depth, :mod:`codecsplat_warp.eval.geometry`); the depth means are over the samples that
+have reference depth (``depth_samples``).
 
-    python -m train.validate --run runs/stage1 --data DIR --index train/heldout/index-re10k.json --protocol re10k
+    python -m train.validate --run runs/stage1 --data DIR --index train/heldout_index/index-re10k.json \
+        --protocol re10k --mvs-depth MVS
 
 Writes the JSON summary and ``curve.png`` (training loss and PSNR against step, with the held-out PSNR of
 the model and of the baseline) next to it (default ``RUN/validation-PROTOCOL.json``).
@@ -24,6 +31,7 @@ from tqdm import tqdm
 
 from codecsplat_warp.device import resolve_device
 from codecsplat_warp.errors import InputError
+from codecsplat_warp.eval.geometry import ReferenceDepth, depth_errors
 from codecsplat_warp.eval.protocols import PROTOCOLS, Sample, find_scenes, index_samples, nearest_context_images
 from codecsplat_warp.metrics.image import psnr
 from codecsplat_warp.model import CodecSplat
@@ -35,24 +43,45 @@ from .stage1 import METRICS_FILE
 
 @dataclass
 class SceneScore:
-    """Mean target-view PSNR (dB) of one held-out scene over its samples."""
+    """Scores of one held-out sample: mean target-view PSNR (dB) of the codec-free model and of the nearest
+    view, mean self-render PSNR (dB) over the context views, and the errors of ``D_enc`` against the reference
+    depth (None without it)."""
 
     scene: str
     samples: int
     model_psnr: float
     nearest_view_psnr: float
+    self_render_psnr: float | None = None
+    depth_abs_rel: float | None = None
+    depth_delta_1_25: float | None = None
 
 
 @torch.no_grad()
-def score_sample(model: CodecSplat, sample: Sample, device: torch.device) -> SceneScore:
-    """Codec-free model and nearest-view PSNR of one sample."""
+def score_sample(model: CodecSplat, sample: Sample, device: torch.device,
+                 reference: ReferenceDepth | None = None) -> SceneScore:
+    """Codec-free model, nearest-view and self-render PSNR of one sample, and ``D_enc``'s errors against the
+    reference depth of its context views (when ``reference`` has any)."""
+    depth_reference = reference.context_depth(sample) if reference is not None else None
     sample = sample.to(device)
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda"):
-        gaussians = model(sample.context_images, sample.context_cameras)["gaussians"]
-    rgb = model.render(gaussians, sample.target_cameras)["rgb"]
+        out = model(sample.context_images, sample.context_cameras)
+    rgb = model.render(out["gaussians"], sample.target_cameras)["rgb"]
+    own = model.render(out["gaussians"], sample.context_cameras)["rgb"]
     nearest = nearest_context_images(sample.context_images, sample.context_cameras, sample.target_cameras)
+    errors = depth_errors(out["D_enc"], depth_reference) if depth_reference is not None else {}
     return SceneScore(sample.scene, 1, float(psnr(rgb, sample.target_images).mean()),
-                      float(psnr(nearest, sample.target_images).mean()))
+                      float(psnr(nearest, sample.target_images).mean()), float(psnr(own, sample.context_images).mean()),
+                      errors.get("abs_rel"), errors.get("delta_1_25"))
+
+
+def summarize(scores: list[SceneScore]) -> dict:
+    """Means over the samples: PSNRs over all, depth errors over those with reference depth (``depth_samples``)."""
+    def mean(key: str) -> float | None:
+        values = [getattr(s, key) for s in scores if getattr(s, key) is not None]
+        return sum(values) / len(values) if values else None
+
+    keys = ("model_psnr", "nearest_view_psnr", "self_render_psnr", "depth_abs_rel", "depth_delta_1_25")
+    return {**{key: mean(key) for key in keys}, "depth_samples": sum(s.depth_abs_rel is not None for s in scores)}
 
 
 def load_run(run: pathlib.Path, device, step: int | None = None) -> tuple[CodecSplat, int]:
@@ -119,23 +148,36 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--step", type=int, help="validate the checkpoint of this step (default: the newest)")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--out", type=pathlib.Path, help="JSON summary (default RUN/validation-PROTOCOL.json)")
+    parser.add_argument("--mvs-depth", type=pathlib.Path,
+                        help="folder of reference depth, DIR/<scene>/depth.json (codecsplat depth): D_enc's errors")
     args = parser.parse_args(argv)
     device = resolve_device(args.device)
+    reference = ReferenceDepth(args.mvs_depth) if args.mvs_depth else None
     model, step = load_run(args.run, device, args.step)
     samples = index_samples(find_scenes(args.data), args.index, PROTOCOLS[args.protocol])
-    scores = [score_sample(model, sample, device) for sample in tqdm(samples, desc="validate")]
+    scores = [score_sample(model, sample, device, reference) for sample in tqdm(samples, desc="validate")]
     out = args.out or args.run / f"validation-{args.protocol}.json"
-    summary = {
-        "step": step, "protocol": args.protocol, "index": str(args.index), "scenes": [vars(s) for s in scores],
-        "model_psnr": sum(s.model_psnr for s in scores) / len(scores),
-        "nearest_view_psnr": sum(s.nearest_view_psnr for s in scores) / len(scores),
-    }
+    summary = {"step": step, "protocol": args.protocol, "index": str(args.index),
+               "mvs_depth": str(args.mvs_depth) if args.mvs_depth else None, "scenes": [vars(s) for s in scores],
+               **summarize(scores)}
     out.write_text(json.dumps(summary, indent=1))
     plot_curve(read_metrics(args.run), scores, step, out.with_suffix(".png"))
-    print(f"{'scene':<28}{'model dB':>10}{'nearest dB':>12}")
-    for s in scores:
-        print(f"{s.scene:<28}{s.model_psnr:>10.2f}{s.nearest_view_psnr:>12.2f}")
-    print(f"{'mean':<28}{summary['model_psnr']:>10.2f}{summary['nearest_view_psnr']:>12.2f}  (step {step})")
+    print(score_table(scores, summary, step))
+
+
+def score_table(scores: list[SceneScore], summary: dict, step: int) -> str:
+    """The printed table: one line per sample and the means (depth columns "-" without reference depth)."""
+    def cells(model_psnr, nearest, own, abs_rel, delta) -> str:
+        depth = "".join(f"{'-' if v is None else format(v, '.3f'):>9}" for v in (abs_rel, delta))
+        return f"{model_psnr:>10.2f}{nearest:>12.2f}{'-' if own is None else format(own, '.2f'):>9}{depth}"
+
+    lines = [f"{'scene':<28}{'model dB':>10}{'nearest dB':>12}{'self dB':>9}{'AbsRel':>9}{'δ<1.25':>9}"]
+    lines += [f"{s.scene:<28}" + cells(s.model_psnr, s.nearest_view_psnr, s.self_render_psnr, s.depth_abs_rel,
+                                        s.depth_delta_1_25) for s in scores]
+    lines.append(f"{'mean':<28}" + cells(*(summary[k] for k in ("model_psnr", "nearest_view_psnr", "self_render_psnr",
+                                                                 "depth_abs_rel", "depth_delta_1_25")))
+                 + f"  (step {step}; depth over {summary['depth_samples']} of {len(scores)} samples)")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ from __future__ import annotations
 from ..errors import DataError
 from .chunks import load_chunk_scene, load_index, read_chunk, write_chunks
 from .colmap import is_colmap_model, load_colmap, read_model
+from .depth_maps import DepthMaps, read_depth_maps
 from .dataset import ProceduralDataset, SceneDataset, make_dataloader
 from .formats import FORMATS, detect_formats, load_scene
 from .kitti import load_kitti
@@ -30,10 +31,10 @@ from .views import (
 )
 
 __all__ = [
-    "BoundedSamplerConfig", "DATASET_CONFIGS", "DataError", "DatasetConfig", "EncodedImages", "FORMATS",
+    "BoundedSamplerConfig", "DATASET_CONFIGS", "DataError", "DatasetConfig", "DepthMaps", "EncodedImages", "FORMATS",
     "ProceduralConfig", "ProceduralDataset", "Scene", "SceneDataset", "ViewSelection", "detect_formats",
     "is_colmap_model", "load_7scenes", "load_chunk_scene", "load_colmap", "load_evaluation_index", "load_index",
     "load_kitti", "load_llff", "load_middlebury", "load_nerf", "load_neus", "load_scene", "load_scene_json",
-    "make_dataloader", "preprocess_scene", "procedural_scene", "read_chunk", "read_model", "render",
-    "resize_and_crop", "sample_bounded_views", "split_context_targets", "write_chunks",
+    "make_dataloader", "preprocess_scene", "procedural_scene", "read_chunk", "read_depth_maps", "read_model",
+    "render", "resize_and_crop", "sample_bounded_views", "split_context_targets", "write_chunks",
 ]

@@ -66,6 +66,21 @@ def resize_and_crop(images: torch.Tensor, cameras: Cameras, width: int, height: 
     return cropped, protocol_cameras(cameras, width, height)
 
 
+def resize_to_max_side(images: torch.Tensor, cameras: Cameras, max_side: int) -> tuple[torch.Tensor, Cameras]:
+    """Resize uint8 [V,3,H,W] images (Lanczos) so that the long side is at most ``max_side`` pixels, aspect kept
+    (sides rounded), covering the whole image (no crop); unchanged when it already is. Returns the images and
+    the cameras rescaled to them."""
+    if max_side < 1:
+        raise DataError(f"max_side must be >= 1, got {max_side}")
+    in_h, in_w = images.shape[-2:]
+    if max(in_w, in_h) <= max_side:
+        return images, cameras
+    scale = max_side / max(in_w, in_h)
+    width, height = max(1, round(in_w * scale)), max(1, round(in_h * scale))
+    resized = torch.stack([_resize_lanczos(image, width, height) for image in images])
+    return resized, cameras.rescaled(width, height)
+
+
 def protocol_cameras(cameras: Cameras, width: int, height: int) -> Cameras:
     """The cameras of images resized to cover ``width`` x ``height`` and centre-cropped (see :func:`resize_and_crop`)."""
     scaled_w, scaled_h, left, top = crop_geometry(cameras.width, cameras.height, width, height)

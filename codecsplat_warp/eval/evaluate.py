@@ -16,6 +16,13 @@ anchors; see :mod:`codecsplat_warp.eval.protocols`):
 Metrics on the targets: PSNR (prediction clipped to [0,1]), SSIM (11x11 Gaussian window), LPIPS-VGG and
 LPIPS-Alex (when weights are found); see :mod:`codecsplat_warp.metrics.image`.
 
+Geometry (Table 3): every method with Gaussians also renders them into the sample's own context views, scored
+with the same metrics against the context images (*self-render*; pixel-aligned Gaussians should give back
+their images). With ``mvs_depth`` (``--mvs-depth DIR``: ``DIR/<scene>/depth.json`` of ``codecsplat depth``),
+the codec-free encoder depth ``D_enc`` and each lambda's decoder depth ``D_hat`` are scored against the
+reference depth of the context views (AbsRel, delta<1.25; :mod:`codecsplat_warp.eval.geometry`); samples whose
+scene or context views have no reference are left out of the depth means, and ``depth_reference`` counts them.
+
 Timing (Table 2, seconds; CUDA work is synchronised before a clock is read): *GS generation* is the
 network work before compression: for CodecSplat the encoder's backbone up to ``F_c`` (MVEnc, FeatHead,
 R_pre), for the baselines the whole codec-free forward pass that produces their Gaussians; *compress* is
@@ -24,7 +31,8 @@ encoder; *decompress* is bytes -> Gaussians on the device. A warm-up pass on the
 kernel loading, allocator) is not timed.
 
 Outputs (``--out``): ``results.json`` (every sample and the summary; a rerun resumes from it), ``tables.md`` (Tables 1 and 2 in
-the paper's form), ``rate_distortion.png`` and ``distortion_vs_time.png``; with ``--renders``, one picture per sample
+the paper's form, Table 3), ``rate_distortion.png`` (PSNR, SSIM, LPIPS-VGG and LPIPS-Alex against bytes) and
+``distortion_vs_time.png``; with ``--renders``, one picture per sample
 under ``renders/`` (its target views against the ground truth, by every method, titled with bytes and PSNR).
 """
 
@@ -34,8 +42,9 @@ import contextlib
 import json
 import pathlib
 import statistics
+import sys
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import MISSING, asdict, dataclass, fields, replace
 from typing import Callable, Iterator
 
 import numpy as np
@@ -52,10 +61,11 @@ from ..gaussians import Gaussians
 from ..measure import machine_name, synchronize, timed
 from ..metrics.image import ImageMetrics
 from ..model.codecsplat import model_id
+from .geometry import ReferenceDepth, depth_errors
 from .protocols import (PROTOCOLS, Protocol, Sample, SamplePlan, chunk_plan, eager_plan, find_scenes, folder_index_plan,
                         is_chunk_folder, nearest_context_images, scene_samples, select_scenes)
 from .report import (BACKBONE, CODECSPLAT, COPY_NEAREST, Row, format_bytes, markdown_report, plot_comparison,
-                     plot_distortion_vs_time, plot_rate_distortion, summarize, table1, table2)
+                     plot_distortion_vs_time, plot_rate_distortion, summarize, table1, table2, table3)
 
 BASELINE_NAMES = ("ply", "png", "feature")
 """Baselines ``--baselines`` may name: (a) PLY + Deflate, (b) PNG, (c) float16 feature + Deflate."""
@@ -93,14 +103,17 @@ class Evaluator:
         baselines: subset of :data:`BASELINE_NAMES`.
         png: the PNG baseline with its settings (K_SH and Lloyd steps).
         keep_renders: keep each method's target renders of the last sample in :attr:`renders`.
+        reference: reference depth of the context views (None: no depth errors).
 
     Attributes:
         renders: after :meth:`run` with ``keep_renders``, one [T,H,W,3] uint8 array per returned row, in order.
     """
 
     def __init__(self, model, metrics: ImageMetrics, lambdas, baselines, device: torch.device,
-                 png: PngCompression = PngCompression(), keep_renders: bool = False):
+                 png: PngCompression = PngCompression(), keep_renders: bool = False,
+                 reference: ReferenceDepth | None = None):
         self.model = model
+        self.reference = reference
         self.keep_renders = keep_renders
         self.renders: list[np.ndarray] = []
         self.metrics = metrics
@@ -126,6 +139,7 @@ class Evaluator:
 
     def run(self, sample: Sample, progress: tqdm | None = None) -> list[Row]:
         """Every method's :class:`Row` on one sample."""
+        reference = self.reference.context_depth(sample) if self.reference is not None else None
         sample = sample.to(self.device)
         rows = []
         self.renders = []
@@ -137,11 +151,13 @@ class Evaluator:
 
         step(self._copy_nearest(sample))
         for lam in self.lambdas:
-            step(self._codecsplat(sample, lam))
+            step(self._codecsplat(sample, lam, reference))
         with torch.no_grad(), self._autocast():
             out, gen_s = timed(lambda: self.model(sample.context_images, sample.context_cameras), self.device)
         gaussians = out["gaussians"].detach()
-        step(self._gaussian_codec(sample, BACKBONE + "→PLY", "float32", gaussians, gen_s, encode_ply, decode_ply))
+        codec_free = self._gaussian_codec(sample, BACKBONE + "→PLY", "float32", gaussians, gen_s, encode_ply,
+                                          decode_ply)
+        step(replace(codec_free, depth=self._depth_errors(out["D_enc"], reference)))  # the encoder depth D_enc
         if "ply" in self.baselines:
             step(self._gaussian_codec(sample, BACKBONE + "→PLY+Deflate", self.ply_deflate.setting, gaussians, gen_s,
                                       self.ply_deflate.encode, self.ply_deflate.decode))
@@ -149,7 +165,7 @@ class Evaluator:
             step(self._gaussian_codec(sample, BACKBONE + "→PNG", self.png.setting, gaussians, gen_s,
                                       self.png.encode, self.png.decode))
         if "feature" in self.baselines:
-            step(self._feature_codec(sample, out, gen_s))
+            step(self._feature_codec(sample, out, gen_s, reference))
         return rows
 
     def _autocast(self):
@@ -160,6 +176,17 @@ class Evaluator:
         with torch.no_grad():
             rgb = self.model.render(gaussians, sample.target_cameras)["rgb"]
         return self._score_rgb(rgb, sample)
+
+    def self_render(self, gaussians: Gaussians, sample: Sample) -> dict[str, float]:
+        """Mean of each metric over the context views rendered from ``gaussians``, against the context images."""
+        with torch.no_grad():
+            rgb = self.model.render(gaussians, sample.context_cameras)["rgb"]
+        return {name: statistics.fmean(v) for name, v in self.metrics(rgb, sample.context_images).items()}
+
+    @staticmethod
+    def _depth_errors(depth: torch.Tensor, reference: torch.Tensor | None) -> dict[str, float]:
+        """Errors of a method's depth map [V,H,W] against the context views' reference depth (empty without one)."""
+        return {} if reference is None else depth_errors(depth, reference)
 
     def _score_rgb(self, rgb: torch.Tensor, sample: Sample) -> dict[str, float]:
         """Mean of each metric over the target views ``rgb`` [T,3,H,W] (kept when ``keep_renders``)."""
@@ -172,7 +199,7 @@ class Evaluator:
         rgb = nearest_context_images(sample.context_images, sample.context_cameras, sample.target_cameras)
         return Row(sample.scene, COPY_NEAREST, "no bitstream", 0, self._score_rgb(rgb, sample), 0.0, 0.0, 0.0)
 
-    def _codecsplat(self, sample: Sample, lam: float) -> Row:
+    def _codecsplat(self, sample: Sample, lam: float, reference: torch.Tensor | None) -> Row:
         with backbone_clock(self.model, self.device) as marks:
             synchronize(self.device)
             start = time.perf_counter()
@@ -182,27 +209,30 @@ class Evaluator:
         decoded, decompress_s = timed(lambda: self.model.decode_scene(encoded.data), self.device)
         return Row(sample.scene, CODECSPLAT, f"λ={lam:g}", len(encoded.data), self._score(decoded.gaussians, sample),
                    gen_s=marks["features_done"] - start, compress_s=end - marks["features_done"],
-                   decompress_s=decompress_s, lam=lam, parts=bytes_report(encoded.data))
+                   decompress_s=decompress_s, lam=lam, parts=bytes_report(encoded.data),
+                   self_render=self.self_render(decoded.gaussians, sample),
+                   depth=self._depth_errors(decoded.depth, reference))
 
     def _gaussian_codec(self, sample: Sample, method: str, setting: str, gaussians: Gaussians, gen_s: float,
                         encode: Callable, decode: Callable) -> Row:
         data, compress_s = timed(lambda: encode(gaussians), self.device)
         decoded, decompress_s = timed(lambda: decode(data, self.device), self.device)
         return Row(sample.scene, method, setting, len(data), self._score(decoded, sample), gen_s, compress_s,
-                   decompress_s)
+                   decompress_s, self_render=self.self_render(decoded, sample))
 
-    def _feature_codec(self, sample: Sample, out: dict, gen_s: float) -> Row:
+    def _feature_codec(self, sample: Sample, out: dict, gen_s: float, reference: torch.Tensor | None) -> Row:
         data, compress_s = timed(lambda: self.feature.encode(out["F_c"], out["D_enc"], sample.context_cameras),
                                  self.device)
 
-        def decode() -> Gaussians:
+        def decode() -> tuple[Gaussians, torch.Tensor]:
             scene = self.feature.decode(data, self.device)
             with torch.no_grad(), self._autocast():
-                return self.model.decode_gaussians(scene.feature, scene.depth, scene.cameras)
+                return self.model.decode_gaussians(scene.feature, scene.depth, scene.cameras), scene.depth
 
-        decoded, decompress_s = timed(decode, self.device)
+        (decoded, depth), decompress_s = timed(decode, self.device)
         return Row(sample.scene, "CodecSplat w/ Deflate", self.feature.setting, len(data), self._score(decoded, sample),
-                   gen_s, compress_s, decompress_s)
+                   gen_s, compress_s, decompress_s, self_render=self.self_render(decoded, sample),
+                   depth=self._depth_errors(depth, reference))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -233,10 +263,17 @@ class EvalConfig:
     """Keep the samples an earlier run of the same evaluation finished in ``out/results.json`` (False: start over)."""
     renders: bool = False
     """Also write ``renders/<scene>-<sample>.png`` per sample: targets x (ground truth, every method)."""
+    mvs_depth: str | None = None
+    """Folder of reference depth, ``<scene folder name>/depth.json`` per scene (``codecsplat depth``): scores the
+    context views' depth maps (None: no depth errors)."""
 
 
 RUN_SETTINGS = ("out", "progress", "resume", "renders")
 """EvalConfig fields that do not change the results: a run may resume another that differs only in these."""
+
+CONFIG_DEFAULTS = {f.name: f.default for f in fields(EvalConfig) if f.default is not MISSING}
+GEOMETRY_KEYS = {"self_render", "depth"}
+"""Row keys of the self-render and depth measures, which results.json files written before them lack."""
 
 
 def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
@@ -248,14 +285,19 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
     resumes after the last finished sample (its rows, timings included, are kept as measured then). A chunk
     folder is streamed one chunk at a time (:func:`~codecsplat_warp.eval.protocols.chunk_plan`).
 
+    A results.json of an earlier version, whose rows lack the self-render and depth measures, is not resumed:
+    its samples are measured again, and ``notes`` says so.
+
     Returns:
         {"config", "device", "machine", "model_id", "scenes", "skipped", "lpips", "files", "plan", "samples_done",
-        "samples_total", "summary", "rows", "tables"}.
+        "samples_total", "summary", "rows", "depth_reference" (folder, samples and context views scored, and a
+        sentence saying so), "notes", "tables" (table1, table2, table3)}.
     Raises:
         InputError: unknown protocol or baseline, empty lambda list, bad size, a chunk folder without an index
             or with the ``scene`` protocol.
         DataError: no usable scene; an index naming scenes or frames the data does not have; results.json of
-            another evaluation in ``out`` (with ``resume``).
+            another evaluation in ``out`` (with ``resume``); a ``mvs_depth`` that is not a folder, or a corrupt
+            ``depth.json`` or depth PNG in it.
     """
     protocol = _protocol(config)
     unknown = sorted(set(config.baselines) - set(BASELINE_NAMES))
@@ -266,12 +308,14 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
     for lam in config.lambdas:
         check_lambda(lam)
     png = PngCompression(sh_clusters=config.png_sh_clusters, kmeans_iterations=config.kmeans_iterations)
+    reference = ReferenceDepth(config.mvs_depth) if config.mvs_depth else None
     metrics = ImageMetrics(config.lpips_weights, device)
     plan = _plan(config, protocol, model)
     if not plan.keys:
         raise DataError(f"no scene under {config.data} is usable with the {protocol.name} protocol: "
                         + ("; ".join(f"{s['scene']}: {s['reason']}" for s in plan.skipped) or "the index selects none"))
-    evaluator = Evaluator(model, metrics, config.lambdas, config.baselines, device, png, keep_renders=config.renders)
+    evaluator = Evaluator(model, metrics, config.lambdas, config.baselines, device, png, keep_renders=config.renders,
+                          reference=reference)
     out = pathlib.Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
     files = {"json": out / "results.json", "markdown": out / "tables.md", "rate_distortion": out / "rate_distortion.png",
@@ -282,7 +326,9 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
         "skipped": plan.skipped, "lpips": metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1",
         "files": {k: str(v) for k, v in files.items()}, "plan": [[s, list(c), list(t)] for s, c, t in plan.keys],
     }
-    rows, start = _finished(files["json"], header) if config.resume else ([], 0)
+    rows, start, notes = _finished(files["json"], header) if config.resume else ([], 0, [])
+    for note in notes:
+        tqdm.write(note, file=sys.stderr)
     total = len(plan.keys)
     with tqdm(total=(total - start) * evaluator.steps_per_sample, desc="eval", unit="method",
               disable=None if config.progress else True) as progress:  # None: only on a terminal
@@ -299,7 +345,9 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
                                        "summary": summarize(rows), "rows": [asdict(r) for r in rows]})
     summary = summarize(rows)
     result = {**header, "samples_done": total, "samples_total": total, "summary": summary,
-              "rows": [asdict(r) for r in rows], "tables": {"table1": table1(summary), "table2": table2(summary)}}
+              "rows": [asdict(r) for r in rows], "depth_reference": _depth_reference(config.mvs_depth, rows, plan.keys),
+              "notes": notes,
+              "tables": {"table1": table1(summary), "table2": table2(summary), "table3": table3(summary)}}
     write_json(files["json"], result)
     write_text(files["markdown"], markdown_report(result))
     plot_rate_distortion(summary, files["rate_distortion"])
@@ -336,18 +384,34 @@ def _plan(config: EvalConfig, protocol: Protocol, model) -> SamplePlan:
     return eager_plan(samples, skipped)
 
 
-def _finished(file: pathlib.Path, header: dict) -> tuple[list[Row], int]:
-    """The rows and the count of the samples an earlier run of the same evaluation finished (none without a file).
+def _depth_reference(folder: str | None, rows: list[Row], keys: list) -> dict:
+    """How many samples and context views the depth errors cover (read off the codec-free rows, one per
+    sample), with a sentence that says so."""
+    views = sum(len(context) for _, context, _ in keys)
+    scored = [r.depth for r in rows if r.method == BACKBONE + "→PLY" and r.depth]
+    counts = {"folder": folder, "samples": len(keys), "samples_scored": len(scored), "views": views,
+              "views_scored": sum(d["views"] for d in scored)}
+    text = ("No reference depth (no --mvs-depth)." if folder is None else
+            f"Reference depth from {folder}: {len(scored)} of {len(keys)} sample(s) scored, "
+            f"{counts['views_scored']} of {views} context views with reference depth; samples without any are left "
+            "out of the depth means.")
+    return {**counts, "text": text}
+
+
+def _finished(file: pathlib.Path, header: dict) -> tuple[list[Row], int, list[str]]:
+    """The rows and the count of the samples an earlier run of the same evaluation finished (none without a file),
+    and notes: a file of an earlier version (rows without the self-render and depth measures) keeps none.
 
     Raises:
         DataError: ``file`` is not results JSON, or holds another evaluation (other options, model, device,
             LPIPS or samples), naming what differs.
     """
     if not file.exists():
-        return [], 0
+        return [], 0, []
     try:
         saved = json.loads(file.read_text())
         rows, done = [Row(**r) for r in saved["rows"]], int(saved["samples_done"])
+        measured = all(GEOMETRY_KEYS <= set(r) for r in saved["rows"])
     except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as exc:
         raise DataError(f"{file} is not the results of a codecsplat eval ({type(exc).__name__}: {exc}): "
                         "use another --out, or --restart to overwrite it") from None
@@ -355,15 +419,19 @@ def _finished(file: pathlib.Path, header: dict) -> tuple[list[Row], int]:
     if differs:
         raise DataError(f"{file} holds another evaluation ({', '.join(differs)} differ): use another --out, or "
                         "--restart to overwrite it")
-    return rows, done
+    if not measured:
+        return [], 0, [f"{file} predates the self-render and depth measures: its {done} finished sample(s) are "
+                       "measured again"]
+    return rows, done, []
 
 
 def _identity(header: dict) -> dict:
     """What must match for a run to resume another: the options that change results, model, device, LPIPS, plan."""
     config = header.get("config")
-    if isinstance(config, dict):
+    if isinstance(config, dict):  # options added since a file was written read as their defaults
+        config = {**CONFIG_DEFAULTS, **config}
         config = {k: v for k, v in config.items() if k not in RUN_SETTINGS}
-        for key in ("data", "index"):
+        for key in ("data", "index", "mvs_depth"):
             if config.get(key):
                 config[key] = str(pathlib.Path(config[key]).resolve())
         config = json.loads(json.dumps(config))  # tuples as lists, as read back from the file

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import itertools
 import pathlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Collection, Iterator
 
 import torch
@@ -62,7 +62,13 @@ scene: stored size, the model's view count."""
 
 @dataclass
 class Sample:
-    """One evaluation item: context and target views of a scene, images float32 [V,3,H,W] in [0,1]."""
+    """One evaluation item: context and target views of a scene, images float32 [V,3,H,W] in [0,1].
+
+    ``context_files`` (the context views' frame names, e.g. ``images/x.jpg`` as in the scene's
+    ``cameras.json``) and ``stored_size`` (the scene's stored (width, height) before the protocol's resize and
+    centre crop) let reference data of the stored views be brought to the sample's grid
+    (:mod:`~codecsplat_warp.eval.geometry`); empty / None where the sample does not come from a stored scene.
+    """
 
     scene: str
     context: list[int]
@@ -71,10 +77,13 @@ class Sample:
     context_cameras: Cameras
     target_images: torch.Tensor
     target_cameras: Cameras
+    context_files: tuple[str, ...] = ()
+    stored_size: tuple[int, int] | None = None
 
     def to(self, device: torch.device) -> "Sample":
-        return Sample(self.scene, self.context, self.target, self.context_images.to(device),
-                      self.context_cameras.to(device), self.target_images.to(device), self.target_cameras.to(device))
+        return replace(self, context_images=self.context_images.to(device),
+                       context_cameras=self.context_cameras.to(device), target_images=self.target_images.to(device),
+                       target_cameras=self.target_cameras.to(device))
 
 
 
@@ -277,7 +286,8 @@ def protocol_sample(name: str, scene, protocol: Protocol, context: list[int], ta
     cameras = frames.cameras.to(dtype=torch.float32)
     n = len(context)
     return Sample(name, context, target, pixels[:n], cameras.select(list(range(n))), pixels[n:],
-                  cameras.select(list(range(n, n + len(target)))))
+                  cameras.select(list(range(n, n + len(target)))), tuple(scene.frame_names[f] for f in context),
+                  (scene.cameras.width, scene.cameras.height))
 
 
 def nearest_context_images(context_images: torch.Tensor, context_cameras: Cameras,

@@ -1,5 +1,6 @@
 """Reports of ``codecsplat eval``: the per-sample :class:`Row`, means over samples, Tables 1 and 2 in the paper's
-form, the Markdown file, and the rate-distortion and distortion-vs-time plots."""
+form with Table 3 (self-render and depth), the Markdown file, and the rate-distortion and distortion-vs-time
+plots."""
 
 from __future__ import annotations
 
@@ -18,7 +19,13 @@ COPY_NEAREST = "Copy nearest context view"
 
 @dataclass
 class Row:
-    """One method on one sample: bytes, quality of the target renders, seconds."""
+    """One method on one sample: bytes, quality of the target renders, seconds, and the geometry measures.
+
+    ``self_render``: the image metrics of the method's Gaussians rendered into the sample's own context views
+    against the context images (None: the method has no Gaussians). ``depth``: the errors of the method's depth
+    map against the reference depth of the context views (:func:`~codecsplat_warp.eval.geometry.depth_errors`;
+    None: the method has no depth map, empty: no reference depth for this sample).
+    """
 
     scene: str
     method: str
@@ -30,10 +37,21 @@ class Row:
     decompress_s: float
     lam: float | None = None
     parts: dict[str, int] = field(default_factory=dict)
+    self_render: dict[str, float] | None = None
+    depth: dict[str, float] | None = None
+
+
+SELF_RENDER_PREFIX = "self_"
+DEPTH_KEYS = ("abs_rel", "delta_1_25")
 
 
 def summarize(rows: list[Row]) -> list[dict]:
-    """Mean over samples of every (method, setting), in first-appearance order."""
+    """Mean over samples of every (method, setting), in first-appearance order.
+
+    Geometry keys: ``gaussians`` (whether the method has any), ``self_<metric>`` (mean over its samples);
+    for a method with a depth map ``depth_samples`` (samples with reference depth) and ``depth_abs_rel``,
+    ``depth_delta_1_25`` (means over those samples, each a mean over its pixels).
+    """
     groups: dict[tuple[str, str], list[Row]] = {}
     for row in rows:
         groups.setdefault((row.method, row.setting), []).append(row)
@@ -45,8 +63,23 @@ def summarize(rows: list[Row]) -> list[dict]:
             entry[name] = statistics.fmean(r.metrics[name] for r in group)
         for key in ("gen_s", "compress_s", "decompress_s"):
             entry[key] = statistics.fmean(getattr(r, key) for r in group)
-        summary.append(entry)
+        summary.append({**entry, **_geometry_means(group)})
     return summary
+
+
+def _geometry_means(group: list[Row]) -> dict:
+    """The geometry keys of :func:`summarize` for one (method, setting)."""
+    rendered = [r.self_render for r in group if r.self_render is not None]
+    entry: dict = {"gaussians": bool(rendered)}
+    for name in rendered[0] if rendered else ():
+        entry[SELF_RENDER_PREFIX + name] = statistics.fmean(r[name] for r in rendered)
+    depths = [r.depth for r in group if r.depth is not None]
+    if depths:
+        scored = [d for d in depths if d]
+        entry["depth_samples"] = len(scored)
+        for key in DEPTH_KEYS if scored else ():
+            entry[f"depth_{key}"] = statistics.fmean(d[key] for d in scored)
+    return entry
 
 
 def format_bytes(count: float) -> str:
@@ -56,14 +89,48 @@ def format_bytes(count: float) -> str:
 
 TABLE1_COLUMNS = [("method", "Method", "s"), ("setting", "Codec Setting", "s"), ("bytes_text", "Bytes/scene ↓", "s"),
                   ("psnr", "PSNR ↑", ".2f"), ("ssim", "SSIM ↑", ".3f"), ("lpips_vgg", "LPIPS-VGG ↓", ".3f"),
-                  ("lpips_alex", "LPIPS-Alex ↓", ".3f")]
+                  ("lpips_alex", "LPIPS-Alex ↓", ".3f"), ("self_psnr", "Self-render PSNR ↑", ".2f"),
+                  ("depth_abs_rel", "Depth AbsRel ↓", ".3f"), ("depth_delta_1_25", "Depth δ<1.25 ↑", ".3f")]
+TABLE3_COLUMNS = [("method", "Method", "s"), ("setting", "Codec Setting", "s"), ("self_psnr", "PSNR ↑", ".2f"),
+                  ("self_ssim", "SSIM ↑", ".3f"), ("self_lpips_vgg", "LPIPS-VGG ↓", ".3f"),
+                  ("self_lpips_alex", "LPIPS-Alex ↓", ".3f"), ("depth_abs_rel", "Depth AbsRel ↓", ".3f"),
+                  ("depth_delta_1_25", "Depth δ<1.25 ↑", ".3f"), ("depth_samples", "Depth samples", "d")]
 TABLE2_COLUMNS = [("method", "Method", "s"), ("setting", "Codec Setting", "s"), ("gen_s", "GS Gen. T. ↓", ".3f"),
                   ("compress_s", "Compress T. ↓", ".3f"), ("decompress_s", "Decompress T. ↓", ".3f")]
 
 
 def table1(summary: list[dict]) -> str:
-    """Table 1 (and 4): bytes per scene and target-view quality of every method (n/a: LPIPS without weights)."""
-    return format_table([{**s, "bytes_text": format_bytes(s["bytes"])} for s in _paper_order(summary)], TABLE1_COLUMNS)
+    """Table 1 (and 4): bytes per scene and target-view quality of every method (n/a: LPIPS without weights),
+    with the self-render PSNR and depth errors of Table 3 ("-": the method has no Gaussians or depth map; n/a:
+    not measured)."""
+    return format_table([{**_geometry_cells(s, TABLE1_COLUMNS), "bytes_text": format_bytes(s["bytes"])}
+                         for s in _paper_order(summary)], _as_text(TABLE1_COLUMNS))
+
+
+def table3(summary: list[dict]) -> str:
+    """Table 3: each method's Gaussians rendered into their own context views (image metrics against the
+    context images) and its depth map against the reference depth ("-": no Gaussians or no depth map; n/a: not
+    measured, e.g. LPIPS without weights or no reference depth)."""
+    return format_table([_geometry_cells(s, TABLE3_COLUMNS) for s in _paper_order(summary)],
+                        _as_text(TABLE3_COLUMNS))
+
+
+def _geometry_cells(entry: dict, columns) -> dict:
+    """``entry`` with its geometry columns formatted as text: "-" where the method has no Gaussians (self-render
+    columns) or no depth map (depth columns), n/a where a value was not measured."""
+    cells = dict(entry)
+    for key, _, spec in columns:
+        if key.startswith(SELF_RENDER_PREFIX) or key.startswith("depth_"):
+            applies = entry.get("gaussians") if key.startswith(SELF_RENDER_PREFIX) else "depth_samples" in entry
+            value = entry.get(key)
+            cells[key] = "-" if not applies else "n/a" if value is None else format(value, spec)
+    return cells
+
+
+def _as_text(columns) -> list[tuple[str, str, str]]:
+    """``columns`` with the geometry columns printed as the text :func:`_geometry_cells` made."""
+    return [(key, header, "s" if key.startswith((SELF_RENDER_PREFIX, "depth_")) else spec)
+            for key, header, spec in columns]
 
 
 def table2(summary: list[dict]) -> str:
@@ -86,8 +153,8 @@ def _paper_order(summary: list[dict]) -> list[dict]:
 
 def plot_rate_distortion(summary: list[dict], path: pathlib.Path) -> None:
     """Quality against bytes per scene (log scale): CodecSplat's lambda curve, baselines as points."""
-    names = [n for n in ("psnr", "ssim", "lpips_alex") if n in summary[0]]
-    labels = {"psnr": "PSNR (dB) ↑", "ssim": "SSIM ↑", "lpips_alex": "LPIPS-Alex ↓"}
+    names = [n for n in ("psnr", "ssim", "lpips_vgg", "lpips_alex") if n in summary[0]]
+    labels = {"psnr": "PSNR (dB) ↑", "ssim": "SSIM ↑", "lpips_vgg": "LPIPS-VGG ↓", "lpips_alex": "LPIPS-Alex ↓"}
     fig, axes = _figure(len(names))
     for ax, name in zip(axes, names):
         _plot_methods(ax, summary, x=lambda s: s["bytes"] / 1024, y=lambda s, n=name: s[n], connect=True)
@@ -190,8 +257,20 @@ def markdown_report(result: dict) -> str:
         "",
         result["tables"]["table2"],
         "",
+        "## Table 3: self-render and depth",
+        "",
+        "Self-render: each method's Gaussians rendered into the sample's own context views, against the context "
+        "images (mean over views, then over samples). Depth: the codec-free row (→PLY float32) scores the encoder "
+        "depth D_enc, CodecSplat at each λ the decoder depth D̂, CodecSplat w/ Deflate its float16 D_enc; "
+        "AbsRel and δ<1.25 over the pixels of all context views of a sample that have reference depth, then the "
+        "mean over samples. " + result["depth_reference"]["text"],
+        "",
+        result["tables"]["table3"],
+        "",
     ]
     if result["skipped"]:
         lines += ["Skipped: " + "; ".join(f"{s['scene']} ({s['reason']})" for s in result["skipped"]), ""]
+    for note in result["notes"]:
+        lines += [note, ""]
     return "\n".join(lines)
 

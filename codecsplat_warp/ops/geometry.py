@@ -176,7 +176,7 @@ class _ReprojectAverage(torch.autograd.Function):
         V, C, H, W = feat.shape
         avg = torch.zeros_like(feat)
         count = torch.empty(V, H, W, dtype=torch.int32, device=feat.device)
-        _launch_by_rows(reproject_kernels.reproject_average_forward, (V, H, W),
+        launch_by_rows(reproject_kernels.reproject_average_forward, (V, H, W),
                         [feat, depth, intrinsics, rel, neighbours, avg, count], feat.device)
         ctx.save_for_backward(feat, depth, intrinsics, rel, neighbours, count)
         ctx.mark_non_differentiable(count)
@@ -188,7 +188,7 @@ class _ReprojectAverage(torch.autograd.Function):
         grad_avg = grad_avg.contiguous()
         grad_depth = torch.empty_like(depth)
         V, _, H, W = feat.shape
-        grad_feat = _launch_by_rows(reproject_kernels.reproject_average_backward, (V, H, W),
+        grad_feat = launch_by_rows(reproject_kernels.reproject_average_backward, (V, H, W),
                                     [grad_avg, feat, depth, intrinsics, rel, neighbours, count, _PER_PIECE, grad_depth],
                                     feat.device, scatter_like=feat)  # fmt: skip
         return grad_feat, grad_depth, None, None, None
@@ -201,7 +201,7 @@ class _CostVolume(torch.autograd.Function):
         D = candidates.shape[1]
         cost = torch.empty(V, D, H, W, dtype=feat.dtype, device=feat.device)
         count = torch.empty(V, D, H, W, dtype=torch.int32, device=feat.device)
-        _launch_by_rows(reproject_kernels.cost_volume_forward, (V, D, H, W),
+        launch_by_rows(reproject_kernels.cost_volume_forward, (V, D, H, W),
                         [feat, candidates, intrinsics, rel, neighbours, cost, count], feat.device)
         ctx.save_for_backward(feat, candidates, intrinsics, rel, neighbours, count)
         return cost
@@ -210,7 +210,7 @@ class _CostVolume(torch.autograd.Function):
     def backward(ctx, grad_cost):
         feat, candidates, intrinsics, rel, neighbours, count = ctx.saved_tensors
         grad_cost = grad_cost.contiguous()
-        grad_feat = _launch_by_rows(reproject_kernels.cost_volume_backward, count.shape,
+        grad_feat = launch_by_rows(reproject_kernels.cost_volume_backward, count.shape,
                                     [grad_cost, feat, candidates, intrinsics, rel, neighbours, count, _PER_PIECE],
                                     feat.device, scatter_like=feat)  # fmt: skip
         return grad_feat, None, None, None, None
@@ -260,23 +260,23 @@ def _kernel_cameras(cameras: Cameras, like: torch.Tensor, width: int, height: in
             index = _checked_neighbours(neighbours, cams.num_views, like.device)
         rel = cameras.to(dtype=torch.float64).relative_transforms(index).to(like.dtype).contiguous()
         # the given neighbours tensor is kept alive with the entry, so its id cannot be reused while cached
-        return _KernelCameras(_intrinsics_vector(cams), cams.c2w.contiguous(), rel, index), neighbours
+        return _KernelCameras(intrinsics_vector(cams), cams.c2w.contiguous(), rel, index), neighbours
 
     with torch.autocast(like.device.type, enabled=False):  # camera algebra in full precision, cached as such
         return cameras.memoized(key, build)[0]
 
 
-def _intrinsics_vector(cameras: Cameras) -> torch.Tensor:
+def intrinsics_vector(cameras: Cameras) -> torch.Tensor:
     """[V,4] (fx, fy, cx, cy) in pixels of the cameras' grid."""
     K = cameras.K
     return torch.stack([K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]], dim=-1).contiguous()
 
 
 _PER_PIECE = object()
-"""Stands, in the arguments given to :func:`_launch_by_rows`, for the gradient buffer of each row piece."""
+"""Stands, in the arguments given to :func:`launch_by_rows`, for the gradient buffer of each row piece."""
 
 
-def _launch_by_rows(kernel, dims: tuple[int, ...], args: list, device: torch.device,
+def launch_by_rows(kernel, dims: tuple[int, ...], args: list, device: torch.device,
                     scatter_like: torch.Tensor | None = None) -> torch.Tensor | None:  # fmt: skip
     """Launch a row-parallel kernel over ``dims = (*leading, H, W)`` in pieces of image rows (:func:`row_chunks`:
     one piece on CUDA, one per CPU thread on the CPU, run concurrently), each piece with the kernel arguments

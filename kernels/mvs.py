@@ -1,0 +1,341 @@
+"""Multi-view stereo: a plane sweep with windowed NCC, refinement between planes, and a geometric consistency count.
+
+Conventions (``codecsplat_warp.cameras``): OpenCV axes, pixel centres at +0.5, depth = camera z. The sweep planes
+are fronto-parallel in the reference camera: the window pixel (x + i*step, y + j*step) on the plane of depth d
+is the camera point ``d * ray(x + i*step, y + j*step)``, so its position in a source view is the plane-induced
+homography of that pixel, formed here by moving the centre's source-frame point by i and j window steps.
+
+Array arguments (all scalar arrays so one kernel serves float32 and float64):
+
+* ``gray`` [V,H,W] grey levels in [0,1]; ``depth`` [V,H,W] camera-z depth (0 = none);
+* ``intrinsics`` [V,4] fx, fy, cx, cy in pixels of the grid;
+* ``rel`` [V,K,4,4] reference-to-source transforms ``w2c[s] @ c2w[r]``, ``back`` [V,K,4,4] their inverses;
+* ``sources`` [V,K] int32 source view indices, of which the first ``source_count[r]`` are used;
+* ``inv_range`` [V,2] inverse depth of the far and of the near plane per view;
+* ``view0``, ``row0``: first view and first image row of the launch (launches are split by views and, on
+  the CPU, by rows over threads).
+
+Source pixels are sampled bilinearly with the coordinates clamped to the border pixels; a source counts for a
+(pixel, plane) only where the window centre lands in front of it and inside its image.
+"""
+
+from typing import Any
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+from .reproject import lower_tap, rotate_to_source, to_source_frame
+from .unproject import pixel_ray
+
+MAX_SOURCES = wp.constant(8)
+"""Most source views per reference view (the per-plane costs are sorted in a local vector of this length)."""
+
+
+
+@wp.func
+def no_match_cost(like: Any):
+    """Cost of a plane that no source sees (1 - NCC lies in [0, 2]), in ``like``'s type.
+
+    A function rather than a ``wp.constant``: Warp 1.19 folds ``float64(CONSTANT)`` into the constant's own
+    variable, so a variable initialised that way and updated in a loop changes every later read of the constant.
+    """
+    return type(like)(2.0)
+
+
+@wp.func
+def gray_at(gray: wp.array(dtype=Any, ndim=3), v: int, x: int, y: int):
+    """gray[v] at integer pixel (x, y), clamped to the image."""
+    return gray[v, wp.clamp(y, 0, gray.shape[1] - 1), wp.clamp(x, 0, gray.shape[2] - 1)]
+
+
+@wp.func
+def sample_bilinear(gray: wp.array(dtype=Any, ndim=3), v: int, u: Any, w: Any):
+    """Bilinear sample of gray[v] at image point (u, w) (pixel-edge units), clamped to the border pixels."""
+    one = type(u)(1.0)
+    half = type(u)(0.5)
+    sx = wp.clamp(u - half, type(u)(0.0), type(u)(gray.shape[2] - 1))
+    sy = wp.clamp(w - half, type(u)(0.0), type(u)(gray.shape[1] - 1))
+    x0 = lower_tap(sx, gray.shape[2])
+    y0 = lower_tap(sy, gray.shape[1])
+    x1 = wp.min(x0 + 1, gray.shape[2] - 1)
+    y1 = wp.min(y0 + 1, gray.shape[1] - 1)
+    ax = sx - type(u)(x0)
+    ay = sy - type(u)(y0)
+    top = (one - ax) * gray[v, y0, x0] + ax * gray[v, y0, x1]
+    bottom = (one - ax) * gray[v, y1, x0] + ax * gray[v, y1, x1]
+    return (one - ay) * top + ay * bottom
+
+
+@wp.func
+def inside_image(u: Any, w: Any, width: int, height: int):
+    """Whether image point (u, w) lies in [0, width] x [0, height]."""
+    zero = type(u)(0.0)
+    return u >= zero and u <= type(u)(width) and w >= zero and w <= type(u)(height)
+
+
+@wp.func
+def reference_window(gray: wp.array(dtype=Any, ndim=3), r: int, x: int, y: int, radius: int, step: int):
+    """(sum, sum of squares) of the reference grey levels over the window of pixel (x, y)."""
+    total = gray.dtype(0.0)
+    squares = gray.dtype(0.0)
+    for j in range(-radius, radius + 1):
+        for i in range(-radius, radius + 1):
+            g = gray_at(gray, r, x + i * step, y + j * step)
+            total += g
+            squares += g * g
+    return total, squares
+
+
+@wp.func
+def source_ncc(
+    gray: wp.array(dtype=Any, ndim=3),
+    intrinsics: wp.array(dtype=Any, ndim=2),
+    rel: wp.array(dtype=Any, ndim=4),
+    r: int,
+    m: int,
+    x: int,
+    y: int,
+    d: Any,
+    radius: int,
+    step: int,
+    ref_sum: Any,
+    ref_var: Any,
+    s: int,
+):
+    """(valid, NCC) of the reference window of pixel (x, y) with source m = view s on the plane of depth d.
+
+    ``ref_var`` is the window's sum of squared deviations; NCC is 0 where either window is flat.
+    """
+    zero = type(d)(0.0)
+    p = to_source_frame(rel, r, m, pixel_ray(intrinsics, r, x, y) * d)
+    ex = rotate_to_source(rel, r, m, wp.vector(type(d)(step) * d / intrinsics[r, 0], zero, zero))
+    ey = rotate_to_source(rel, r, m, wp.vector(zero, type(d)(step) * d / intrinsics[r, 1], zero))
+    width = gray.shape[2]
+    height = gray.shape[1]
+    valid = int(0)
+    if p[2] > zero:
+        valid = int(inside_image(intrinsics[s, 0] * p[0] / p[2] + intrinsics[s, 2],
+                                 intrinsics[s, 1] * p[1] / p[2] + intrinsics[s, 3], width, height))
+    src_sum = zero
+    src_squares = zero
+    cross = zero
+    if valid == 1:
+        for j in range(-radius, radius + 1):
+            for i in range(-radius, radius + 1):
+                q = p + ex * type(d)(i) + ey * type(d)(j)
+                if q[2] > zero:
+                    g = sample_bilinear(gray, s, intrinsics[s, 0] * q[0] / q[2] + intrinsics[s, 2],
+                                        intrinsics[s, 1] * q[1] / q[2] + intrinsics[s, 3])
+                else:
+                    valid = 0
+                    g = zero
+                src_sum += g
+                src_squares += g * g
+                cross += g * gray_at(gray, r, x + i * step, y + j * step)
+    ncc = zero
+    if valid == 1:
+        n = type(d)((2 * radius + 1) * (2 * radius + 1))
+        src_var = src_squares - src_sum * src_sum / n
+        covariance = cross - ref_sum * src_sum / n
+        tiny = type(d)(1.0e-10) * n
+        if src_var > tiny and ref_var > tiny:
+            ncc = wp.clamp(covariance / wp.sqrt(src_var * ref_var), type(d)(-1.0), type(d)(1.0))
+    return valid, ncc
+
+
+@wp.func
+def plane_cost(
+    gray: wp.array(dtype=Any, ndim=3),
+    intrinsics: wp.array(dtype=Any, ndim=2),
+    rel: wp.array(dtype=Any, ndim=4),
+    sources: wp.array(dtype=wp.int32, ndim=2),
+    count: int,
+    r: int,
+    x: int,
+    y: int,
+    inv_d: Any,
+    radius: int,
+    step: int,
+    ref_sum: Any,
+    ref_var: Any,
+):
+    """Occlusion-robust matching cost of pixel (x, y) of view r on the plane of inverse depth ``inv_d``.
+
+    The mean of the best (lowest) half, rounded up, of the costs 1 - NCC of the sources that see the window
+    centre; :func:`no_match_cost` where none does.
+    """
+    costs = wp.vector(length=MAX_SOURCES, dtype=type(inv_d))
+    d = type(inv_d)(1.0) / inv_d
+    n = int(0)
+    for m in range(count):
+        valid, ncc = source_ncc(gray, intrinsics, rel, r, m, x, y, d, radius, step, ref_sum, ref_var, sources[r, m])
+        if valid == 1:
+            c = type(inv_d)(1.0) - ncc
+            k = n
+            while k > 0:  # insertion into the sorted costs
+                if costs[k - 1] <= c:
+                    break
+                costs[k] = costs[k - 1]
+                k -= 1
+            costs[k] = c
+            n += 1
+    result = no_match_cost(inv_d)
+    if n > 0:
+        best = (n + 1) // 2
+        total = type(inv_d)(0.0)
+        for k in range(best):
+            total += costs[k]
+        result = total / type(inv_d)(best)
+    return result
+
+
+@wp.kernel
+def plane_sweep_depth(
+    gray: wp.array(dtype=Any, ndim=3),
+    intrinsics: wp.array(dtype=Any, ndim=2),
+    rel: wp.array(dtype=Any, ndim=4),
+    sources: wp.array(dtype=wp.int32, ndim=2),
+    source_count: wp.array(dtype=wp.int32, ndim=1),
+    inv_range: wp.array(dtype=Any, ndim=2),
+    num_planes: int,
+    refine_steps: int,
+    radius: int,
+    step: int,
+    depth: wp.array(dtype=Any, ndim=3),
+    ncc: wp.array(dtype=Any, ndim=3),
+    texture: wp.array(dtype=Any, ndim=3),
+    view0: int,
+    row0: int,
+):
+    """Winner-take-all depth of each pixel over ``num_planes`` planes uniform in inverse depth, refined.
+
+    The winner plane is refined by a sweep of ``refine_steps`` - 1 planes on either side at 1/``refine_steps``
+    of the plane spacing, then by a parabola through the best of those and its two neighbours (in inverse
+    depth). Writes depth (0 where no plane is seen by any source), the aggregated NCC of the best refined plane
+    (-1 there) and the standard deviation of the reference window's grey levels. Launch dim: (views, rows, W)
+    from view ``view0``, row ``row0``.
+    """
+    t, row, x = wp.tid()
+    r = view0 + t
+    y = row0 + row
+    ref_sum, ref_squares = reference_window(gray, r, x, y, radius, step)
+    n = type(ref_sum)((2 * radius + 1) * (2 * radius + 1))
+    ref_var = wp.max(ref_squares - ref_sum * ref_sum / n, type(ref_sum)(0.0))
+    texture[r, y, x] = wp.sqrt(ref_var / n)
+    count = source_count[r]
+    inv_far = inv_range[r, 0]
+    inv_near = inv_range[r, 1]
+    spacing = (inv_near - inv_far) / type(inv_far)(num_planes - 1)
+    best = no_match_cost(inv_far)
+    best_inv = inv_far
+    for k in range(num_planes):
+        inv_d = inv_far + spacing * type(inv_far)(k)
+        c = plane_cost(gray, intrinsics, rel, sources, count, r, x, y, inv_d, radius, step, ref_sum, ref_var)
+        if c < best:
+            best = c
+            best_inv = inv_d
+    fine = spacing / type(inv_far)(refine_steps)
+    centre = best_inv
+    for j in range(1 - refine_steps, refine_steps):
+        inv_d = centre + fine * type(inv_far)(j)
+        if j != 0 and inv_d >= inv_far and inv_d <= inv_near:
+            c = plane_cost(gray, intrinsics, rel, sources, count, r, x, y, inv_d, radius, step, ref_sum, ref_var)
+            if c < best:
+                best = c
+                best_inv = inv_d
+    if best < no_match_cost(inv_far):
+        below = best_inv - fine
+        above = best_inv + fine
+        if below >= inv_far and above <= inv_near:
+            c_below = plane_cost(gray, intrinsics, rel, sources, count, r, x, y, below, radius, step, ref_sum, ref_var)
+            c_above = plane_cost(gray, intrinsics, rel, sources, count, r, x, y, above, radius, step, ref_sum, ref_var)
+            curvature = c_below - type(inv_far)(2.0) * best + c_above
+            if curvature > type(inv_far)(0.0):
+                offset = type(inv_far)(0.5) * fine * (c_below - c_above) / curvature
+                best_inv += wp.clamp(offset, -fine, fine)
+        depth[r, y, x] = type(inv_far)(1.0) / best_inv
+        ncc[r, y, x] = type(inv_far)(1.0) - best
+    else:
+        depth[r, y, x] = type(inv_far)(0.0)
+        ncc[r, y, x] = type(inv_far)(-1.0)
+
+
+@wp.func
+def sample_depth(depth: wp.array(dtype=Any, ndim=3), v: int, u: Any, w: Any):
+    """depth[v] at image point (u, w): bilinear where all four taps hold a depth, else the nearest pixel's."""
+    half = type(u)(0.5)
+    zero = type(u)(0.0)
+    width = depth.shape[2]
+    height = depth.shape[1]
+    sx = wp.clamp(u - half, zero, type(u)(width - 1))
+    sy = wp.clamp(w - half, zero, type(u)(height - 1))
+    x0 = lower_tap(sx, width)
+    y0 = lower_tap(sy, height)
+    x1 = wp.min(x0 + 1, width - 1)
+    y1 = wp.min(y0 + 1, height - 1)
+    d00 = depth[v, y0, x0]
+    d01 = depth[v, y0, x1]
+    d10 = depth[v, y1, x0]
+    d11 = depth[v, y1, x1]
+    result = depth[v, wp.min(int(w), height - 1), wp.min(int(u), width - 1)]
+    if d00 > zero and d01 > zero and d10 > zero and d11 > zero:
+        one = type(u)(1.0)
+        ax = sx - type(u)(x0)
+        ay = sy - type(u)(y0)
+        result = (one - ay) * ((one - ax) * d00 + ax * d01) + ay * ((one - ax) * d10 + ax * d11)
+    return result
+
+
+@wp.kernel
+def consistent_views(
+    depth: wp.array(dtype=Any, ndim=3),
+    intrinsics: wp.array(dtype=Any, ndim=2),
+    rel: wp.array(dtype=Any, ndim=4),
+    back: wp.array(dtype=Any, ndim=4),
+    sources: wp.array(dtype=wp.int32, ndim=2),
+    source_count: wp.array(dtype=wp.int32, ndim=1),
+    tolerance: wp.array(dtype=Any, ndim=1),
+    agree: wp.array(dtype=wp.int32, ndim=3),
+    view0: int,
+    row0: int,
+):
+    """agree[r, y, x] = number of source views whose depth agrees with depth[r, y, x] (0 where it is 0).
+
+    The pixel is unprojected at its depth into source s, s's depth is sampled there (:func:`sample_depth`),
+    and that point is carried back into r: it agrees when it lands within ``tolerance[0]`` pixels of the pixel
+    centre and its depth is within ``tolerance[1]`` (relative) of depth[r, y, x]. Launch dim: (views, rows, W)
+    from view ``view0``, row ``row0``.
+    """
+    t, row, x = wp.tid()
+    r = view0 + t
+    y = row0 + row
+    d = depth[r, y, x]
+    zero = type(d)(0.0)
+    n = int(0)
+    if d > zero:
+        point = pixel_ray(intrinsics, r, x, y) * d
+        width = depth.shape[2]
+        height = depth.shape[1]
+        for m in range(source_count[r]):
+            s = sources[r, m]
+            p = to_source_frame(rel, r, m, point)
+            if p[2] <= zero:
+                continue
+            u = intrinsics[s, 0] * p[0] / p[2] + intrinsics[s, 2]
+            w = intrinsics[s, 1] * p[1] / p[2] + intrinsics[s, 3]
+            if not inside_image(u, w, width, height):
+                continue
+            ds = sample_depth(depth, s, u, w)
+            if ds <= zero:
+                continue
+            seen = wp.vector((u - intrinsics[s, 2]) / intrinsics[s, 0], (w - intrinsics[s, 3]) / intrinsics[s, 1],
+                             type(d)(1.0)) * ds
+            q = to_source_frame(back, r, m, seen)
+            if q[2] <= zero:
+                continue
+            du = intrinsics[r, 0] * q[0] / q[2] + intrinsics[r, 2] - (type(d)(x) + type(d)(0.5))
+            dv = intrinsics[r, 1] * q[1] / q[2] + intrinsics[r, 3] - (type(d)(y) + type(d)(0.5))
+            if du * du + dv * dv < tolerance[0] * tolerance[0] and wp.abs(q[2] - d) < tolerance[1] * d:
+                n += 1
+    agree[r, y, x] = n
