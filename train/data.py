@@ -352,11 +352,7 @@ def reference_depth(scene_folder: pathlib.Path, frame_names: list[str], height: 
     from codecsplat_warp.data.depth_maps import read_depth_maps
 
     maps = read_depth_maps(folder)
-    row_of = {name: row for row, name in enumerate(maps.files)}
-    missing = [name for name in frame_names if name not in row_of]
-    if missing:
-        raise DataError(f"{folder}: no depth map of {missing[:3]} ({len(missing)} frames of {len(frame_names)})")
-    depth = maps.depth[[row_of[name] for name in frame_names]]
+    depth = maps.depth[[maps.frame_index(name) for name in frame_names]]
     return F.interpolate(depth[:, None].float(), size=(height, width), mode="nearest-exact")[:, 0]
 
 
