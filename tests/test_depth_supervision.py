@@ -3,16 +3,22 @@ scenes), its gradient reaching the encoder, and the render loss on the context v
 
 from __future__ import annotations
 
+import json
 import math
+import pathlib
 
 import pytest
 import torch
 from conftest import LPIPS_WEIGHTS as WEIGHTS
 from conftest import needs_lpips
+from PIL import Image
 
-from train.data import DataSpec, make_source
+from train.data import DEPTH_FOLDER, Augmentation, BatchShape, DataSpec, RealScenes, make_source
 from train.stage1 import TrainConfig, reference_depth_loss, stage1_loss
 
+from codecsplat_warp.data.depth_maps import DEPTH_FORMAT, INDEX_FILE, depth_scale, quantize_depth
+from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
+from codecsplat_warp.errors import DataError
 from codecsplat_warp.metrics import LPIPS
 from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.nn.config import get_preset
@@ -73,3 +79,38 @@ def test_self_render_weight_scores_the_context_views_and_adds_their_render_loss(
     both, metrics = stage1_loss(model, lpips, batch, TrainConfig(self_render_weight=0.5))
     assert "self_psnr" not in plain_metrics and 5.0 < float(metrics["self_psnr"]) < 60.0
     assert float(both.detach()) > float(plain.detach())
+
+
+def _write_reference_depth(scene: pathlib.Path, depth: torch.Tensor) -> None:
+    """A depth map folder (codecsplat-depth-v1) at ``scene/mvs`` holding ``depth`` [V,h,w] (0 = none)."""
+    folder = scene / DEPTH_FOLDER
+    (folder / "depth").mkdir(parents=True)
+    frames = json.loads((scene / "cameras.json").read_text())["frames"]
+    scale = depth_scale(float(depth.max()) * 1.5)
+    for frame, view in zip(frames, depth):
+        name = pathlib.Path(frame["file"]).stem
+        Image.fromarray(quantize_depth(view, scale)).save(folder / "depth" / f"{name}.png")
+    index = {"format": DEPTH_FORMAT, "scale": scale, "width": depth.shape[2], "height": depth.shape[1], "near": 0.1,
+             "far": 10.0, "frames": [{"file": f["file"], "depth": f"depth/{pathlib.Path(f['file']).stem}.png",
+                                      "mask": "", "coverage": 0.5, "sources": []} for f in frames]}
+    (folder / INDEX_FILE).write_text(json.dumps(index))
+
+
+def test_real_scenes_bring_their_reference_depth_and_skip_scenes_too_short_for_the_batch(tmp_path):
+    from test_cli_commands import HEIGHT, WIDTH, write_scene
+
+    write_scene(tmp_path / "long", seed=1, views=6)
+    write_scene(tmp_path / "short", seed=2, views=3)
+    truth = procedural_scene(1, ProceduralConfig(width=WIDTH, height=HEIGHT, num_views=6, texture_size=16)).depth
+    known = truth.clone()
+    known[:, :, : WIDTH // 2] = 0.0                       # the left half has no reference depth
+    _write_reference_depth(tmp_path / "long", known)
+    scenes = RealScenes(tmp_path, ["long", "short"], Augmentation())
+    torch.testing.assert_close(scenes.scene("long")[2], known, atol=2 * known.max() / 65535, rtol=0)
+    assert not scenes.scene("short")[2].any()             # no mvs/ folder: all unknown
+    assert scenes.eligible(5) == ["long"] and scenes.eligible(3) == ["long", "short"]
+    with pytest.raises(DataError, match="has 7 views"):
+        scenes.eligible(7)
+    sample = scenes(torch.Generator().manual_seed(0), BatchShape(views=2, targets=3, height=HEIGHT, width=WIDTH, scenes=1))
+    assert sample.key == "long" and sample.context_depth.shape == (2, HEIGHT, WIDTH)
+    assert bool((sample.context_depth > 0).any()) and bool((sample.context_depth == 0).any())

@@ -369,6 +369,7 @@ class RealScenes:
         self.root = pathlib.Path(root)
         self.names = list(names)
         self.augmentation = augmentation
+        self.view_counts = {name: _frame_count(self.root / name / "cameras.json") for name in self.names}
         self._cache: dict[str, tuple[torch.Tensor, Cameras, torch.Tensor]] = {}
 
     def scene(self, name: str) -> tuple[torch.Tensor, Cameras, torch.Tensor]:
@@ -382,8 +383,17 @@ class RealScenes:
             self._cache[name] = (loaded.decoded_images(), loaded.cameras, depth)
         return self._cache[name]
 
+    def eligible(self, views: int) -> list[str]:
+        """The scenes with at least ``views`` views; DataError when none has that many."""
+        names = [name for name in self.names if self.view_counts[name] >= views]
+        if not names:
+            raise DataError(f"no scene under {self.root} has {views} views (most: {max(self.view_counts.values())})")
+        return names
+
     def __call__(self, generator: torch.Generator, shape: BatchShape) -> TrainingSample:
-        name = self.names[int(torch.randint(len(self.names), (), generator=generator))]
+        """One sample of a scene drawn among those with enough views for ``shape`` (context + targets)."""
+        names = self.eligible(shape.views + shape.targets)
+        name = names[int(torch.randint(len(names), (), generator=generator))]
         images, cameras, depth = self.scene(name)
         anchor = int(torch.randint(cameras.num_views, (), generator=generator))
         spread = int(torch.randint(shape.views + shape.targets + 1, (), generator=generator))
@@ -401,6 +411,16 @@ class RealScenes:
             crops.append(random_square_crop(images[int(torch.randint(images.shape[0], (), generator=generator))],
                                             generator))
         return crops
+
+
+def _frame_count(file: pathlib.Path) -> int:
+    """Frames listed in a ``cameras.json`` (read without decoding any image); DataError if unreadable."""
+    from codecsplat_warp.data.scene_json import read_json
+
+    frames = read_json(file).get("frames")
+    if not isinstance(frames, list):
+        raise DataError(f"{file}: no frame list")
+    return len(frames)
 
 
 def random_square_crop(image: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
