@@ -66,21 +66,38 @@ def write_scene_depth(run: DepthRun, device: torch.device) -> dict:
     near, far = float(cameras.near.min()), float(cameras.far.max())
     scale = depth_scale(far)
     out = pathlib.Path(run.out)
+    shown = preview_range(result.depth, near, far)
     frames = []
     for v, (frame, stem) in enumerate(zip(scene.frame_names, stems)):
-        frames.append(_write_view(out, stem, frame, images[v], result, v, scale, near, far))
+        frames.append(_write_view(out, stem, frame, images[v], result, v, scale, shown))
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     payload = {"format": DEPTH_FORMAT, "scale": scale, "width": width, "height": height, "near": near, "far": far,
-               "frames": frames, "config": run.config.to_dict(), "max_size": run.max_size, "scene": str(run.scene),
+               "frames": frames, "preview_depth_range": list(shown), "config": run.config.to_dict(), "max_size": run.max_size, "scene": str(run.scene),
                "device": str(device), "seconds": time.perf_counter() - start}
     write_json(out / INDEX_FILE, payload)
     return {**payload, "output": str(out)}
 
 
+PREVIEW_QUANTILES = (0.02, 0.98)
+"""Quantiles of a scene's kept inverse depths that the preview colours span (blue to red)."""
+
+
+def preview_range(depth: torch.Tensor, near: float, far: float) -> tuple[float, float]:
+    """(nearest, farthest) depth the previews of a scene colour: the :data:`PREVIEW_QUANTILES` of the inverse
+    of its kept depths [V,H,W] (0 = none), or (near, far) where fewer than two distinct depths are kept."""
+    kept = depth[depth > 0].detach().to("cpu", torch.float64)
+    if kept.numel() > 100_000:  # torch.quantile's input limit is far above; a strided subsample is plenty
+        kept = kept[:: kept.numel() // 100_000]
+    if kept.numel() < 2:
+        return near, far
+    low, high = torch.quantile(1.0 / kept, torch.tensor(PREVIEW_QUANTILES, dtype=torch.float64)).tolist()
+    return (1.0 / high, 1.0 / low) if high > low else (near, far)
+
+
 def preview_image(image: torch.Tensor, depth: torch.Tensor, near: float, far: float) -> np.ndarray:
     """uint8 [h,2w,3]: the uint8 [3,h,w] image beside the turbo-coloured inverse depth of [h,w] ``depth``
-    (near: red, far: blue; black where the depth is 0)."""
+    (``near`` and nearer: red, ``far`` and farther: blue; black where the depth is 0)."""
     depth = depth.detach().to("cpu", torch.float64)
     kept = depth > 0
     inverse = torch.where(kept, 1.0 / depth.clamp(min=1e-12), torch.zeros_like(depth))
@@ -91,13 +108,14 @@ def preview_image(image: torch.Tensor, depth: torch.Tensor, near: float, far: fl
 
 
 def _write_view(out: pathlib.Path, stem: str, frame: str, image: torch.Tensor, result: MVSDepth, v: int,
-                scale: float, near: float, far: float) -> dict:  # fmt: skip
-    """Write view v's depth, mask and preview PNGs; returns its ``frames`` entry of ``depth.json``."""
+                scale: float, shown: tuple[float, float]) -> dict:  # fmt: skip
+    """Write view v's depth, mask and preview PNGs (colours spanning the depths ``shown``); returns its
+    ``frames`` entry of ``depth.json``."""
     depth = result.depth[v].cpu()
     files = {"depth": f"depth/{stem}.png", "mask": f"mask/{stem}.png", "preview": f"preview/{stem}.png"}
     _write_png(out / files["depth"], quantize_depth(depth, scale))
     _write_png(out / files["mask"], np.where(result.mask[v].cpu().numpy(), 255, 0).astype(np.uint8))
-    _write_png(out / files["preview"], preview_image(image, depth, near, far))
+    _write_png(out / files["preview"], preview_image(image, depth, *shown))
     sources = [int(s) for s in result.sources.index[v].tolist() if s >= 0]
     return {"file": frame, "depth": files["depth"], "mask": files["mask"], "preview": files["preview"],
             "coverage": float(result.coverage[v]), "sources": sources}

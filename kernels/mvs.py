@@ -12,6 +12,8 @@ Array arguments (all scalar arrays so one kernel serves float32 and float64):
 * ``rel`` [V,K,4,4] reference-to-source transforms ``w2c[s] @ c2w[r]``, ``back`` [V,K,4,4] their inverses;
 * ``sources`` [V,K] int32 source view indices, of which the first ``source_count[r]`` are used;
 * ``inv_range`` [V,2] inverse depth of the far and of the near plane per view;
+* ``similarity`` [1] grey-level difference at which a window sample's support weight halves (0: uniform);
+* ``normals`` [N,3] unit plane normals (reference camera frame) tried when refining, row 0 fronto-parallel;
 * ``view0``, ``row0``: first view and first image row of the launch (launches are split by views and, on
   the CPU, by rows over threads).
 
@@ -75,16 +77,43 @@ def inside_image(u: Any, w: Any, width: int, height: int):
 
 
 @wp.func
-def reference_window(gray: wp.array(dtype=Any, ndim=3), r: int, x: int, y: int, radius: int, step: int):
-    """(sum, sum of squares) of the reference grey levels over the window of pixel (x, y)."""
-    total = gray.dtype(0.0)
-    squares = gray.dtype(0.0)
+def support_weight(g: Any, centre: Any, similarity: Any):
+    """Weight of a window sample of grey level g around a centre of grey level ``centre``:
+    1 / (1 + ((g - centre) / similarity)^2), so samples unlike the centre (likely another surface) count less;
+    1 when ``similarity`` <= 0."""
+    w = type(g)(1.0)
+    if similarity > type(g)(0.0):
+        t = (g - centre) / similarity
+        w = type(g)(1.0) / (type(g)(1.0) + t * t)
+    return w
+
+
+@wp.func
+def reference_window(gray: wp.array(dtype=Any, ndim=3), r: int, x: int, y: int, radius: int, step: int,
+                     similarity: Any):  # fmt: skip
+    """Statistics of the reference window of pixel (x, y): (ref, std) with ref = (sum of weights, weighted sum,
+    weighted sum of squared deviations, similarity) of the grey levels (:func:`support_weight`), and std the
+    plain standard deviation of the window's grey levels."""
+    zero = type(similarity)(0.0)
+    centre = gray_at(gray, r, x, y)
+    weights = zero
+    total = zero
+    squares = zero
+    plain = zero
+    plain_squares = zero
     for j in range(-radius, radius + 1):
         for i in range(-radius, radius + 1):
             g = gray_at(gray, r, x + i * step, y + j * step)
-            total += g
-            squares += g * g
-    return total, squares
+            w = support_weight(g, centre, similarity)
+            weights += w
+            total += w * g
+            squares += w * g * g
+            plain += g
+            plain_squares += g * g
+    n = type(similarity)((2 * radius + 1) * (2 * radius + 1))
+    deviation = wp.max(squares - total * total / weights, zero)
+    std = wp.sqrt(wp.max(plain_squares / n - (plain / n) * (plain / n), zero))
+    return wp.vector(weights, total, deviation, similarity), std
 
 
 @wp.func
@@ -97,51 +126,71 @@ def source_ncc(
     x: int,
     y: int,
     d: Any,
+    normal: Any,
     radius: int,
     step: int,
-    ref_sum: Any,
-    ref_var: Any,
+    ref: Any,
     s: int,
 ):
-    """(valid, NCC) of the reference window of pixel (x, y) with source m = view s on the plane of depth d.
+    """(valid, NCC) of the reference window of pixel (x, y) with source m = view s on the plane through the
+    pixel's point at depth d with unit ``normal`` (reference camera frame; (0, 0, 1) is fronto-parallel).
 
-    ``ref_var`` is the window's sum of squared deviations; NCC is 0 where either window is flat.
+    Window pixel (i, j) steps along the pixel ray r_ij = ray + (i step / fx, j step / fy, 0) to the plane, at
+    depth d (n . ray) / (n . r_ij). Weighted NCC with the reference's support weights (``ref`` from
+    :func:`reference_window`); 0 where either window is flat. Not valid where the plane is seen nearly edge-on.
     """
     zero = type(d)(0.0)
-    p = to_source_frame(rel, r, m, pixel_ray(intrinsics, r, x, y) * d)
-    ex = rotate_to_source(rel, r, m, wp.vector(type(d)(step) * d / intrinsics[r, 0], zero, zero))
-    ey = rotate_to_source(rel, r, m, wp.vector(zero, type(d)(step) * d / intrinsics[r, 1], zero))
+    ray = pixel_ray(intrinsics, r, x, y)
+    dx = type(d)(step) / intrinsics[r, 0]
+    dy = type(d)(step) / intrinsics[r, 1]
+    origin = to_source_frame(rel, r, m, wp.vector(zero, zero, zero))
+    a = rotate_to_source(rel, r, m, ray)
+    bx = rotate_to_source(rel, r, m, wp.vector(dx, zero, zero))
+    by = rotate_to_source(rel, r, m, wp.vector(zero, dy, zero))
+    facing = wp.dot(normal, ray)
+    nx = normal[0] * dx
+    ny = normal[1] * dy
+    p = a * d + origin
     width = gray.shape[2]
     height = gray.shape[1]
     valid = int(0)
-    if p[2] > zero:
+    if p[2] > zero and facing > type(d)(0.1) * wp.length(ray):  # plane at most ~84 deg from facing the pixel
         valid = int(inside_image(intrinsics[s, 0] * p[0] / p[2] + intrinsics[s, 2],
                                  intrinsics[s, 1] * p[1] / p[2] + intrinsics[s, 3], width, height))
+    centre = gray_at(gray, r, x, y)
     src_sum = zero
     src_squares = zero
     cross = zero
     if valid == 1:
         for j in range(-radius, radius + 1):
             for i in range(-radius, radius + 1):
-                q = p + ex * type(d)(i) + ey * type(d)(j)
-                if q[2] > zero:
+                along = facing + nx * type(d)(i) + ny * type(d)(j)
+                q = (a + bx * type(d)(i) + by * type(d)(j)) * (d * facing / wp.max(along, type(d)(1.0e-6))) + origin
+                if q[2] > zero and along > type(d)(0.5) * facing:
                     g = sample_bilinear(gray, s, intrinsics[s, 0] * q[0] / q[2] + intrinsics[s, 2],
                                         intrinsics[s, 1] * q[1] / q[2] + intrinsics[s, 3])
                 else:
                     valid = 0
                     g = zero
-                src_sum += g
-                src_squares += g * g
-                cross += g * gray_at(gray, r, x + i * step, y + j * step)
+                reference = gray_at(gray, r, x + i * step, y + j * step)
+                w = support_weight(reference, centre, ref[3])
+                src_sum += w * g
+                src_squares += w * g * g
+                cross += w * g * reference
     ncc = zero
     if valid == 1:
-        n = type(d)((2 * radius + 1) * (2 * radius + 1))
-        src_var = src_squares - src_sum * src_sum / n
-        covariance = cross - ref_sum * src_sum / n
-        tiny = type(d)(1.0e-10) * n
-        if src_var > tiny and ref_var > tiny:
-            ncc = wp.clamp(covariance / wp.sqrt(src_var * ref_var), type(d)(-1.0), type(d)(1.0))
+        src_deviation = src_squares - src_sum * src_sum / ref[0]
+        covariance = cross - ref[1] * src_sum / ref[0]
+        tiny = type(d)(1.0e-10) * ref[0]
+        if src_deviation > tiny and ref[2] > tiny:
+            ncc = wp.clamp(covariance / wp.sqrt(src_deviation * ref[2]), type(d)(-1.0), type(d)(1.0))
     return valid, ncc
+
+
+@wp.func
+def plane_normal(normals: wp.array(dtype=Any, ndim=2), n: int):
+    """Row n of ``normals`` [N,3] as a vector."""
+    return wp.vector(normals[n, 0], normals[n, 1], normals[n, 2])
 
 
 @wp.func
@@ -155,12 +204,13 @@ def plane_cost(
     x: int,
     y: int,
     inv_d: Any,
+    normal: Any,
     radius: int,
     step: int,
-    ref_sum: Any,
-    ref_var: Any,
+    ref: Any,
 ):
-    """Occlusion-robust matching cost of pixel (x, y) of view r on the plane of inverse depth ``inv_d``.
+    """Occlusion-robust matching cost of pixel (x, y) of view r on the plane through its point at inverse depth
+    ``inv_d`` with ``normal`` (see :func:`source_ncc`).
 
     The mean of the best (lowest) half, rounded up, of the costs 1 - NCC of the sources that see the window
     centre; :func:`no_match_cost` where none does.
@@ -169,7 +219,7 @@ def plane_cost(
     d = type(inv_d)(1.0) / inv_d
     n = int(0)
     for m in range(count):
-        valid, ncc = source_ncc(gray, intrinsics, rel, r, m, x, y, d, radius, step, ref_sum, ref_var, sources[r, m])
+        valid, ncc = source_ncc(gray, intrinsics, rel, r, m, x, y, d, normal, radius, step, ref, sources[r, m])
         if valid == 1:
             c = type(inv_d)(1.0) - ncc
             k = n
@@ -198,6 +248,8 @@ def plane_sweep_depth(
     sources: wp.array(dtype=wp.int32, ndim=2),
     source_count: wp.array(dtype=wp.int32, ndim=1),
     inv_range: wp.array(dtype=Any, ndim=2),
+    similarity: wp.array(dtype=Any, ndim=1),
+    normals: wp.array(dtype=Any, ndim=2),
     num_planes: int,
     refine_steps: int,
     radius: int,
@@ -208,48 +260,53 @@ def plane_sweep_depth(
     view0: int,
     row0: int,
 ):
-    """Winner-take-all depth of each pixel over ``num_planes`` planes uniform in inverse depth, refined.
+    """Winner-take-all depth of each pixel over ``num_planes`` fronto-parallel planes uniform in inverse depth,
+    refined with slanted planes.
 
-    The winner plane is refined by a sweep of ``refine_steps`` - 1 planes on either side at 1/``refine_steps``
-    of the plane spacing, then by a parabola through the best of those and its two neighbours (in inverse
-    depth). Writes depth (0 where no plane is seen by any source), the aggregated NCC of the best refined plane
-    (-1 there) and the standard deviation of the reference window's grey levels. Launch dim: (views, rows, W)
-    from view ``view0``, row ``row0``.
+    Around the winner, every plane normal of ``normals`` [N,3] (row 0 must be fronto-parallel, (0, 0, 1)) is
+    tried at ``refine_steps`` - 1 inverse depths on either side, 1/``refine_steps`` of the plane spacing apart;
+    the best (normal, inverse depth) is refined by a parabola through it and its two neighbours in inverse depth.
+    Writes depth (0 where no plane is seen by any source), the aggregated NCC of the best refined plane (-1
+    there) and the standard deviation of the reference window's grey levels. Launch dim: (views, rows, W) from
+    view ``view0``, row ``row0``.
     """
     t, row, x = wp.tid()
     r = view0 + t
     y = row0 + row
-    ref_sum, ref_squares = reference_window(gray, r, x, y, radius, step)
-    n = type(ref_sum)((2 * radius + 1) * (2 * radius + 1))
-    ref_var = wp.max(ref_squares - ref_sum * ref_sum / n, type(ref_sum)(0.0))
-    texture[r, y, x] = wp.sqrt(ref_var / n)
+    ref, std = reference_window(gray, r, x, y, radius, step, similarity[0])
+    texture[r, y, x] = std
     count = source_count[r]
     inv_far = inv_range[r, 0]
     inv_near = inv_range[r, 1]
     spacing = (inv_near - inv_far) / type(inv_far)(num_planes - 1)
+    fronto = plane_normal(normals, 0)
     best = no_match_cost(inv_far)
     best_inv = inv_far
     for k in range(num_planes):
         inv_d = inv_far + spacing * type(inv_far)(k)
-        c = plane_cost(gray, intrinsics, rel, sources, count, r, x, y, inv_d, radius, step, ref_sum, ref_var)
+        c = plane_cost(gray, intrinsics, rel, sources, count, r, x, y, inv_d, fronto, radius, step, ref)
         if c < best:
             best = c
             best_inv = inv_d
     fine = spacing / type(inv_far)(refine_steps)
     centre = best_inv
-    for j in range(1 - refine_steps, refine_steps):
-        inv_d = centre + fine * type(inv_far)(j)
-        if j != 0 and inv_d >= inv_far and inv_d <= inv_near:
-            c = plane_cost(gray, intrinsics, rel, sources, count, r, x, y, inv_d, radius, step, ref_sum, ref_var)
-            if c < best:
-                best = c
-                best_inv = inv_d
+    best_normal = fronto
+    for n in range(normals.shape[0]):
+        normal = plane_normal(normals, n)
+        for j in range(1 - refine_steps, refine_steps):
+            inv_d = centre + fine * type(inv_far)(j)
+            if (n > 0 or j != 0) and inv_d >= inv_far and inv_d <= inv_near:
+                c = plane_cost(gray, intrinsics, rel, sources, count, r, x, y, inv_d, normal, radius, step, ref)
+                if c < best:
+                    best = c
+                    best_inv = inv_d
+                    best_normal = normal
     if best < no_match_cost(inv_far):
         below = best_inv - fine
         above = best_inv + fine
         if below >= inv_far and above <= inv_near:
-            c_below = plane_cost(gray, intrinsics, rel, sources, count, r, x, y, below, radius, step, ref_sum, ref_var)
-            c_above = plane_cost(gray, intrinsics, rel, sources, count, r, x, y, above, radius, step, ref_sum, ref_var)
+            c_below = plane_cost(gray, intrinsics, rel, sources, count, r, x, y, below, best_normal, radius, step, ref)
+            c_above = plane_cost(gray, intrinsics, rel, sources, count, r, x, y, above, best_normal, radius, step, ref)
             curvature = c_below - type(inv_far)(2.0) * best + c_above
             if curvature > type(inv_far)(0.0):
                 offset = type(inv_far)(0.5) * fine * (c_below - c_above) / curvature
@@ -297,10 +354,12 @@ def consistent_views(
     source_count: wp.array(dtype=wp.int32, ndim=1),
     tolerance: wp.array(dtype=Any, ndim=1),
     agree: wp.array(dtype=wp.int32, ndim=3),
+    fused: wp.array(dtype=Any, ndim=3),
     view0: int,
     row0: int,
 ):
-    """agree[r, y, x] = number of source views whose depth agrees with depth[r, y, x] (0 where it is 0).
+    """agree[r, y, x] = number of source views whose depth agrees with depth[r, y, x] (0 where it is 0), and
+    fused[r, y, x] = the mean of depth[r, y, x] and the agreeing views' depths carried into r.
 
     The pixel is unprojected at its depth into source s, s's depth is sampled there (:func:`sample_depth`),
     and that point is carried back into r: it agrees when it lands within ``tolerance[0]`` pixels of the pixel
@@ -313,6 +372,7 @@ def consistent_views(
     d = depth[r, y, x]
     zero = type(d)(0.0)
     n = int(0)
+    total = d
     if d > zero:
         point = pixel_ray(intrinsics, r, x, y) * d
         width = depth.shape[2]
@@ -338,4 +398,6 @@ def consistent_views(
             dv = intrinsics[r, 1] * q[1] / q[2] + intrinsics[r, 3] - (type(d)(y) + type(d)(0.5))
             if du * du + dv * dv < tolerance[0] * tolerance[0] and wp.abs(q[2] - d) < tolerance[1] * d:
                 n += 1
+                total += q[2]
     agree[r, y, x] = n
+    fused[r, y, x] = total / type(d)(n + 1)

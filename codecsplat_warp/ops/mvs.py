@@ -59,7 +59,11 @@ class MVSConfig:
         num_sources: source views per reference view (at most :data:`MAX_SOURCES`); fewer where fewer qualify.
         window_radius: NCC window half-size [samples]: (2 r + 1)^2 samples.
         window_step: distance between window samples [pixels].
+        support_contrast: grey-level difference (0-1 scale) from the window's centre pixel at which a sample's
+            weight in the NCC halves (samples unlike the centre likely lie on another surface); 0: uniform weights.
         refine_steps: the winner is refined at 1/refine_steps of the plane spacing, then by a parabola fit.
+        slant_degrees: tilts [degrees] of the slanted planes tried when refining, each towards the four image
+            directions (left, right, up, down), beside the fronto-parallel one; () for fronto-parallel only.
         min_texture: smallest standard deviation of the window's grey levels (in [0,1]) for a confident depth.
         min_ncc: smallest aggregated NCC of the winner for a confident depth.
         min_consistent_views: source views that must agree with a depth to keep it.
@@ -80,8 +84,10 @@ class MVSConfig:
     num_planes: int = 128
     num_sources: int = 5
     window_radius: int = 2
-    window_step: int = 2
+    window_step: int = 1
+    support_contrast: float = 0.05
     refine_steps: int = 4
+    slant_degrees: tuple[float, ...] = (35.0, 60.0)
     min_texture: float = 0.01
     min_ncc: float = 0.3
     min_consistent_views: int = 2
@@ -102,12 +108,14 @@ class MVSConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or value < low:
                 raise InputError(f"MVSConfig.{name} must be an integer >= {low}, got {value!r}")
+        if not all(isinstance(a, (int, float)) and 0 < a < 80 for a in self.slant_degrees):
+            raise InputError(f"MVSConfig.slant_degrees must be angles in (0, 80) degrees, got {self.slant_degrees!r}")
         if self.num_sources > MAX_SOURCES:
             raise InputError(f"MVSConfig.num_sources must be <= {MAX_SOURCES}, got {self.num_sources}")
         if self.min_consistent_views > self.num_sources:
             raise InputError(f"MVSConfig.min_consistent_views ({self.min_consistent_views}) exceeds num_sources "
                              f"({self.num_sources})")
-        for name in ("min_texture", "max_reprojection_px", "max_relative_depth", "min_overlap",
+        for name in ("support_contrast", "min_texture", "max_reprojection_px", "max_relative_depth", "min_overlap",
                      "min_triangulation_deg", "max_triangulation_deg", "good_triangulation_deg", "max_view_angle_deg"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
@@ -120,7 +128,16 @@ class MVSConfig:
 
     def to_dict(self) -> dict:
         """Every parameter by name (JSON-serialisable)."""
-        return asdict(self)
+        return {**asdict(self), "slant_degrees": list(self.slant_degrees)}
+
+    def plane_normals(self) -> torch.Tensor:
+        """float64 [1 + 4 * len(slant_degrees), 3] unit normals (camera frame) of the refinement planes: the
+        fronto-parallel (0, 0, 1) first, then each slant towards +x, -x, +y and -y."""
+        normals = [(0.0, 0.0, 1.0)]
+        for angle in self.slant_degrees:
+            tilt, facing = math.sin(math.radians(angle)), math.cos(math.radians(angle))
+            normals += [(tilt, 0.0, facing), (-tilt, 0.0, facing), (0.0, tilt, facing), (0.0, -tilt, facing)]
+        return torch.tensor(normals, dtype=torch.float64)
 
 
 @dataclass(frozen=True)
@@ -202,14 +219,14 @@ def mvs_depth(images: torch.Tensor, cameras: Cameras, config: MVSConfig = MVSCon
     check_values(finite={"images": images})
     V, _, H, W = images.shape
     sources = select_sources(cameras, config)
-    grid = _SweepInputs.build(images, cameras.rescaled(W, H), sources)
+    grid = _SweepInputs.build(images, cameras.rescaled(W, H), sources, config)
     with torch.no_grad():
         raw_depth, ncc, texture = _sweep(grid, config, progress)
         confident = (raw_depth > 0) & (ncc >= config.min_ncc) & (texture >= config.min_texture)
         photometric = torch.where(confident, raw_depth, torch.zeros_like(raw_depth))
-        agree = _consistency(grid, photometric, config)
+        agree, fused = _consistency(grid, photometric, config)
         mask = confident & (agree >= config.min_consistent_views)
-        depth = torch.where(mask, raw_depth, torch.zeros_like(raw_depth))
+        depth = torch.where(mask, fused, torch.zeros_like(raw_depth))
     return MVSDepth(depth=depth, mask=mask, sources=sources, ncc=ncc, texture=texture, raw_depth=raw_depth,
                     consistent_views=agree)
 
@@ -294,7 +311,7 @@ class _SweepInputs:
 
     gray [V,H,W]; intrinsics [V,4]; rel / back [V,K,4,4] reference-to-source transforms and their inverses;
     sources [V,K] int32 (a view's own index after its last source); count [V] int32; inv_range [V,2] (1/far,
-    1/near).
+    1/near); similarity [1] (``support_contrast``); normals [N,3] (:meth:`MVSConfig.plane_normals`).
     """
 
     gray: torch.Tensor
@@ -304,9 +321,11 @@ class _SweepInputs:
     sources: torch.Tensor
     count: torch.Tensor
     inv_range: torch.Tensor
+    similarity: torch.Tensor
+    normals: torch.Tensor
 
     @staticmethod
-    def build(images: torch.Tensor, cameras: Cameras, sources: SourceViews) -> "_SweepInputs":
+    def build(images: torch.Tensor, cameras: Cameras, sources: SourceViews, config: MVSConfig) -> "_SweepInputs":
         dtype, device = images.dtype, images.device
         weights = torch.tensor(GRAY_WEIGHTS, dtype=dtype, device=device)
         gray = torch.einsum("vchw,c->vhw", images, weights).contiguous()
@@ -319,7 +338,9 @@ class _SweepInputs:
                             back=to_kernel(rigid_inverse(rel)),
                             sources=padded.to(device=device, dtype=torch.int32).contiguous(),
                             count=sources.count.to(device=device, dtype=torch.int32).contiguous(),
-                            inv_range=to_kernel(torch.stack([1.0 / cams64.far, 1.0 / cams64.near], dim=-1)))
+                            inv_range=to_kernel(torch.stack([1.0 / cams64.far, 1.0 / cams64.near], dim=-1)),
+                            similarity=torch.tensor([config.support_contrast], dtype=dtype, device=device),
+                            normals=to_kernel(config.plane_normals()))
 
 
 def _view_batches(num_views: int, device: torch.device, config: MVSConfig) -> list[tuple[int, int]]:
@@ -335,8 +356,8 @@ def _sweep(grid: _SweepInputs, config: MVSConfig, progress) -> tuple[torch.Tenso
     done = 0
     for view0, views in _view_batches(V, grid.gray.device, config):
         launch_by_rows(mvs_kernels.plane_sweep_depth, (views, H, W),
-                       [grid.gray, grid.intrinsics, grid.rel, grid.sources, grid.count, grid.inv_range,
-                        config.num_planes, config.refine_steps, config.window_radius, config.window_step,
+                       [grid.gray, grid.intrinsics, grid.rel, grid.sources, grid.count, grid.inv_range, grid.similarity,
+                        grid.normals, config.num_planes, config.refine_steps, config.window_radius, config.window_step,
                         depth, ncc, texture, view0], grid.gray.device)  # fmt: skip
         done += views
         if progress is not None:
@@ -346,13 +367,15 @@ def _sweep(grid: _SweepInputs, config: MVSConfig, progress) -> tuple[torch.Tenso
     return depth, ncc, texture
 
 
-def _consistency(grid: _SweepInputs, depth: torch.Tensor, config: MVSConfig) -> torch.Tensor:
-    """int32 [V,H,W] number of source views that agree with ``depth`` (the consistency kernel)."""
+def _consistency(grid: _SweepInputs, depth: torch.Tensor, config: MVSConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """(int32 [V,H,W] number of source views that agree with ``depth``, [V,H,W] mean of ``depth`` and the
+    agreeing views' depths) by the consistency kernel."""
     V, H, W = depth.shape
     tolerance = torch.tensor([config.max_reprojection_px, config.max_relative_depth], dtype=depth.dtype,
                              device=depth.device)
     agree = torch.empty(V, H, W, dtype=torch.int32, device=depth.device)
+    fused = torch.empty_like(depth)
     launch_by_rows(mvs_kernels.consistent_views, (V, H, W),
-                   [depth, grid.intrinsics, grid.rel, grid.back, grid.sources, grid.count, tolerance, agree, 0],
+                   [depth, grid.intrinsics, grid.rel, grid.back, grid.sources, grid.count, tolerance, agree, fused, 0],
                    depth.device)  # fmt: skip
-    return agree
+    return agree, fused
