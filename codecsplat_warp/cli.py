@@ -1,6 +1,6 @@
 """The ``codecsplat`` command line.
 
-Commands: ``demo`` (the shipped model on a built-in scene), ``encode`` (scene -> bitstream), ``decode``
+Commands: ``demo`` (the shipped model on a real captured scene), ``encode`` (scene -> bitstream), ``decode``
 (bitstream -> 3DGS PLY), ``render`` (bitstream -> frames, GIF or MP4), ``eval`` (the paper's tables with
 baselines), ``bench`` (benchmarks) and ``selfcheck`` (kernels against float64 references).
 
@@ -51,8 +51,10 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (CUDA when available)")
-    parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto: CUDA when torch sees a GPU "
+                        "(default auto)")
+    parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout instead of the "
+                        "summary (default off)")
 
 
 def _model_options(parser: argparse.ArgumentParser) -> None:
@@ -68,7 +70,7 @@ def _number_list(kind, text: str, what: str) -> list:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .demo import DEMO_LAMBDAS, DEMO_SEED, DEMO_TARGET_VIEWS
+    from .demo import DEMO_LAMBDAS, DEMO_SCENE, DEMO_SEED, DEMO_TARGET_VIEWS, PROCEDURAL
     from .eval.evaluate import BASELINE_NAMES, PAPER_LAMBDAS
     from .eval.protocols import PROTOCOLS
     from .export.video import FORMATS
@@ -77,12 +79,16 @@ def build_parser() -> argparse.ArgumentParser:
                                                     "splatting bitstreams, kernels, benchmarks and tools.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
-    demo = sub.add_parser("demo", help="shipped model + built-in procedural scene -> bitstreams, renders, PLY, metrics")
+    demo = sub.add_parser("demo", help="shipped model + real captured scene -> bitstreams, renders, PLY, metrics")
     _model_options(demo)
     demo.add_argument("-o", "--out", default="codecsplat-demo", help="output folder (default ./codecsplat-demo)")
-    demo.add_argument("--lambdas", default=",".join(f"{x:g}" for x in DEMO_LAMBDAS), help="rate trade-offs in [16, 1024]")
-    demo.add_argument("--seed", type=int, default=DEMO_SEED, help="procedural scene seed")
-    demo.add_argument("--targets", type=int, default=DEMO_TARGET_VIEWS, help="target views rendered and scored")
+    demo.add_argument("--scene", default=DEMO_SCENE, help=f"{DEMO_SCENE} (photographs shipped with the package), "
+                      f"{PROCEDURAL} (a procedural room) or a scene folder of your own (default {DEMO_SCENE})")
+    demo.add_argument("--lambdas", default=",".join(f"{x:g}" for x in DEMO_LAMBDAS),
+                      help="comma list of rate trade-offs in [16, 1024] (default %(default)s)")
+    demo.add_argument("--seed", type=int, default=DEMO_SEED, help=f"seed of the {PROCEDURAL} room (default %(default)s)")
+    demo.add_argument("--targets", type=int, default=DEMO_TARGET_VIEWS,
+                      help="target views rendered and scored (default %(default)s)")
     demo.add_argument("--lpips-weights", help="folder with lpips_{vgg,alex}.safetensors (default $CODECSPLAT_LPIPS_WEIGHTS)")
 
     encode = sub.add_parser("encode", help="scene (any supported format) -> scene bitstream")
@@ -211,8 +217,9 @@ def _cmd_demo(args) -> int:
 
     device = _device(args)
     model = _load_model(args, device)
-    config = DemoConfig(out=args.out, lambdas=tuple(_number_list(float, args.lambdas, "--lambdas")), seed=args.seed,
-                        target_views=args.targets, lpips_weights=args.lpips_weights, progress=not args.json)
+    config = DemoConfig(out=args.out, scene=args.scene, lambdas=tuple(_number_list(float, args.lambdas, "--lambdas")),
+                        seed=args.seed, target_views=args.targets, lpips_weights=args.lpips_weights,
+                        progress=not args.json)
     summary = run_demo(model, config, device)
     lines = [f"demo scene {summary['scene']} ({summary['image_size'][0]}x{summary['image_size'][1]}, "
              f"{len(summary['context_views'])} context + {len(summary['target_views'])} target views) on {device}:"]
