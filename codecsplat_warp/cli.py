@@ -116,8 +116,8 @@ def build_parser() -> argparse.ArgumentParser:
                                            "in the encoded scene's world frame; rendered at its image size")
     cameras.add_argument("--orbit", type=int, metavar="N", help="N views on a circle around the context viewpoint")
     render.add_argument("-o", "--out", required=True, help="output folder")
-    render.add_argument("--format", choices=FORMATS, default="png", help="png frames, gif or mp4 (H.264, through imageio-ffmpeg)")
-    render.add_argument("--fps", type=float, default=30.0, help="frames per second of gif/mp4")
+    render.add_argument("--format", choices=FORMATS, default="png", help="png frames, gif or mp4 (H.264, through imageio-ffmpeg) (default %(default)s)")
+    render.add_argument("--fps", type=float, default=30.0, help="frames per second of gif/mp4 (default %(default)g)")
 
     evaluate = sub.add_parser("eval", help="the paper's Tables 1 and 2 (with baselines) on scene folders or chunks")
     _model_options(evaluate)
@@ -125,19 +125,21 @@ def build_parser() -> argparse.ArgumentParser:
                           "RE10K/ACID/DL3DV .torch chunks with their index.json (needs --index)")
     evaluate.add_argument("--protocol", choices=list(PROTOCOLS), default="re10k",
                           help="re10k: 2 views 256x256, depth 0.5-100 on chunks; dl3dv: 8 views 256x448, depth 0.5-200 "
-                          "on chunks; scene: stored size, model's views (scene folders keep their depth range)")
-    evaluate.add_argument("--lambdas", default=",".join(f"{x:g}" for x in PAPER_LAMBDAS), help="CodecSplat lambdas")
+                          "on chunks; scene: stored size, model's views (scene folders keep their depth range) "
+                          "(default %(default)s)")
+    evaluate.add_argument("--lambdas", default=",".join(f"{x:g}" for x in PAPER_LAMBDAS), help="comma list of CodecSplat lambdas in [16, 1024] (default %(default)s)")
     evaluate.add_argument("--baselines", default=",".join(BASELINE_NAMES),
-                          help=f"comma list of {', '.join(BASELINE_NAMES)}, or none")
+                          help=f"comma list of {', '.join(BASELINE_NAMES)}, or none (default %(default)s)")
     evaluate.add_argument("--scenes", default="", help="comma list of scene folder names (or chunk scene keys) to keep "
                           "(default: all)")
-    evaluate.add_argument("--samples-per-scene", type=int, default=1)
+    evaluate.add_argument("--samples-per-scene", type=int, default=1, help="samples per scene without --index, their "
+                          "anchor views spread over the scene (default %(default)s)")
     evaluate.add_argument("--index", help="evaluation index JSON (pixelSplat form: scene folder or chunk key -> context "
                           "and target frames, null to skip); fixes the samples, --samples-per-scene is then unused")
     evaluate.add_argument("--targets", type=int, help="target views per sample (default: the protocol's, 3)")
     evaluate.add_argument("--lpips-weights", help="folder with lpips_{vgg,alex}.safetensors (default $CODECSPLAT_LPIPS_WEIGHTS)")
-    evaluate.add_argument("--png-sh-clusters", type=int, default=8192, help="K_SH of the PNG baseline")
-    evaluate.add_argument("--kmeans-iterations", type=int, default=10, help="Lloyd steps of the PNG baseline's k-means")
+    evaluate.add_argument("--png-sh-clusters", type=int, default=8192, help="K_SH, colour clusters of the PNG baseline (default %(default)s)")
+    evaluate.add_argument("--kmeans-iterations", type=int, default=10, help="Lloyd steps of the PNG baseline's k-means (default %(default)s)")
     evaluate.add_argument("--size", help="WIDTHxHEIGHT instead of the protocol's image size (its depth range stays)")
     evaluate.add_argument("--restart", action="store_true",
                           help="start over instead of resuming the finished samples in OUT/results.json")
