@@ -189,7 +189,7 @@ QUALITY_COLUMNS = (("psnr", "PSNR dB", ".2f"), ("ssim", "SSIM", ".3f"), ("lpips_
 
 def quality_table(summary: dict) -> str:
     """Markdown table of the device-independent results of a demo summary: per lambda the bitstream bytes and
-    the target-view quality (LPIPS columns only when the run had the weights). docs/training.md quotes it."""
+    the target-view quality (LPIPS columns only when the run had the weights). docs/getting-started.md quotes it."""
     columns = [c for c in QUALITY_COLUMNS if all(c[0] in row for row in summary["rows"])]
     lines = ["| λ | bytes | " + " | ".join(header for _, header, _ in columns) + " |",
              "|---|---|" + "---|" * len(columns)]

@@ -1,7 +1,7 @@
 """Training curves of one or more runs (their ``metrics.jsonl``): a PNG and a table of throughput and loss.
 
     python -m train.curves runs/one-gpu runs/ddp-2gpu --labels "1 GPU, accumulate 2" "2 GPUs, DDP" \\
-        --metrics loss,psnr --out docs/ddp-vs-single.png
+        --metrics loss,psnr --out ddp-vs-one-gpu.png
 
 Each metric gets a panel against step; with ``--against-time`` a second row plots it against wall-clock
 seconds (``elapsed_s``, logged by :mod:`train.stage1`). The table (stdout, and JSON with ``--json``) gives per

@@ -1,12 +1,12 @@
 """Held-out validation of a training run: codec-free target-view PSNR on fixed held-out samples.
 
 The samples are the entries of an evaluation index file (scene folder -> context and target frames, e.g.
-``train/heldout/index-re10k.json``) under ``--data``, preprocessed to the ``--protocol`` size as
+``train/heldout_index/index-re10k.json``) under ``--data``, preprocessed to the ``--protocol`` size as
 ``codecsplat eval`` does (:func:`codecsplat_warp.eval.protocols.index_samples`). Each is rendered by the run's
 latest checkpoint (its weight average where it keeps one: :func:`train.checkpoint.weights_for_use`) and
 compared with the "copy the nearest context view" baseline. PSNR on [0,1]-clipped images.
 
-    python -m train.validate --run runs/stage1 --data DIR --index train/heldout/index-re10k.json --protocol re10k
+    python -m train.validate --run runs/stage1 --data DIR --index train/heldout_index/index-re10k.json --protocol re10k
 
 Writes the JSON summary and ``curve.png`` (training loss and PSNR against step, with the held-out PSNR of
 the model and of the baseline) next to it (default ``RUN/validation-PROTOCOL.json``).
