@@ -143,6 +143,9 @@ OPTION_HELP = {
     "init": "warm start from a run folder or a model file: every weight whose name and shape match "
             "(default: none, random weights)",
     "depth_aux_weight": "weight of the decoder depth head's auxiliary L1 loss on detached features",
+    "depth_weight": "weight of the log-depth L1 against the scenes' reference depth where it is known (exact for "
+                    "procedural scenes, multi-view stereo from codecsplat depth for real ones); 0: off",
+    "self_render_weight": "weight of the render loss on the context views themselves; 0: off",
     "ema_decay": "decay of the weights' exponential moving average, which export, validation and warm starts use "
                  "(0: keep none)",
 }
