@@ -1,6 +1,6 @@
 """The ``codecsplat`` command line.
 
-Commands: ``demo`` (the shipped model on a built-in scene), ``encode`` (scene -> bitstream), ``decode``
+Commands: ``demo`` (the shipped model on a real captured scene), ``encode`` (scene -> bitstream), ``decode``
 (bitstream -> 3DGS PLY), ``render`` (bitstream -> frames, GIF or MP4), ``eval`` (the paper's tables with
 baselines), ``depth`` (multi-view stereo depth maps of a posed scene), ``bench`` (benchmarks) and ``selfcheck``
 (kernels against float64 references).
@@ -52,8 +52,10 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (CUDA when available)")
-    parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto: CUDA when torch sees a GPU "
+                        "(default auto)")
+    parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout instead of the "
+                        "summary (default off)")
 
 
 def _model_options(parser: argparse.ArgumentParser) -> None:
@@ -69,7 +71,7 @@ def _number_list(kind, text: str, what: str) -> list:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .demo import DEMO_LAMBDAS, DEMO_SEED, DEMO_TARGET_VIEWS
+    from .demo import DEMO_LAMBDAS, DEMO_SCENE, DEMO_SEED, DEMO_TARGET_VIEWS, PROCEDURAL
     from .eval.evaluate import BASELINE_NAMES, PAPER_LAMBDAS
     from .eval.protocols import PROTOCOLS
     from .export.video import FORMATS
@@ -78,12 +80,16 @@ def build_parser() -> argparse.ArgumentParser:
                                                     "splatting bitstreams, kernels, benchmarks and tools.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
-    demo = sub.add_parser("demo", help="shipped model + built-in procedural scene -> bitstreams, renders, PLY, metrics")
+    demo = sub.add_parser("demo", help="shipped model + real captured scene -> bitstreams, renders, PLY, metrics")
     _model_options(demo)
     demo.add_argument("-o", "--out", default="codecsplat-demo", help="output folder (default ./codecsplat-demo)")
-    demo.add_argument("--lambdas", default=",".join(f"{x:g}" for x in DEMO_LAMBDAS), help="rate trade-offs in [16, 1024]")
-    demo.add_argument("--seed", type=int, default=DEMO_SEED, help="procedural scene seed")
-    demo.add_argument("--targets", type=int, default=DEMO_TARGET_VIEWS, help="target views rendered and scored")
+    demo.add_argument("--scene", default=DEMO_SCENE, help=f"{DEMO_SCENE} (photographs shipped with the package), "
+                      f"{PROCEDURAL} (a procedural room) or a scene folder of your own (default {DEMO_SCENE})")
+    demo.add_argument("--lambdas", default=",".join(f"{x:g}" for x in DEMO_LAMBDAS),
+                      help="comma list of rate trade-offs in [16, 1024] (default %(default)s)")
+    demo.add_argument("--seed", type=int, default=DEMO_SEED, help=f"seed of the {PROCEDURAL} room (default %(default)s)")
+    demo.add_argument("--targets", type=int, default=DEMO_TARGET_VIEWS,
+                      help="target views rendered and scored (default %(default)s)")
     demo.add_argument("--lpips-weights", help="folder with lpips_{vgg,alex}.safetensors (default $CODECSPLAT_LPIPS_WEIGHTS)")
 
     encode = sub.add_parser("encode", help="scene (any supported format) -> scene bitstream")
@@ -111,8 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
                                            "in the encoded scene's world frame; rendered at its image size")
     cameras.add_argument("--orbit", type=int, metavar="N", help="N views on a circle around the context viewpoint")
     render.add_argument("-o", "--out", required=True, help="output folder")
-    render.add_argument("--format", choices=FORMATS, default="png", help="png frames, gif or mp4 (H.264, through imageio-ffmpeg)")
-    render.add_argument("--fps", type=float, default=30.0, help="frames per second of gif/mp4")
+    render.add_argument("--format", choices=FORMATS, default="png", help="png frames, gif or mp4 (H.264, through imageio-ffmpeg) (default %(default)s)")
+    render.add_argument("--fps", type=float, default=30.0, help="frames per second of gif/mp4 (default %(default)g)")
 
     evaluate = sub.add_parser("eval", help="the paper's Tables 1 and 2 (with baselines) on scene folders or chunks")
     _model_options(evaluate)
@@ -120,19 +126,21 @@ def build_parser() -> argparse.ArgumentParser:
                           "RE10K/ACID/DL3DV .torch chunks with their index.json (needs --index)")
     evaluate.add_argument("--protocol", choices=list(PROTOCOLS), default="re10k",
                           help="re10k: 2 views 256x256, depth 0.5-100 on chunks; dl3dv: 8 views 256x448, depth 0.5-200 "
-                          "on chunks; scene: stored size, model's views (scene folders keep their depth range)")
-    evaluate.add_argument("--lambdas", default=",".join(f"{x:g}" for x in PAPER_LAMBDAS), help="CodecSplat lambdas")
+                          "on chunks; scene: stored size, model's views (scene folders keep their depth range) "
+                          "(default %(default)s)")
+    evaluate.add_argument("--lambdas", default=",".join(f"{x:g}" for x in PAPER_LAMBDAS), help="comma list of CodecSplat lambdas in [16, 1024] (default %(default)s)")
     evaluate.add_argument("--baselines", default=",".join(BASELINE_NAMES),
-                          help=f"comma list of {', '.join(BASELINE_NAMES)}, or none")
+                          help=f"comma list of {', '.join(BASELINE_NAMES)}, or none (default %(default)s)")
     evaluate.add_argument("--scenes", default="", help="comma list of scene folder names (or chunk scene keys) to keep "
                           "(default: all)")
-    evaluate.add_argument("--samples-per-scene", type=int, default=1)
+    evaluate.add_argument("--samples-per-scene", type=int, default=1, help="samples per scene without --index, their "
+                          "anchor views spread over the scene (default %(default)s)")
     evaluate.add_argument("--index", help="evaluation index JSON (pixelSplat form: scene folder or chunk key -> context "
                           "and target frames, null to skip); fixes the samples, --samples-per-scene is then unused")
     evaluate.add_argument("--targets", type=int, help="target views per sample (default: the protocol's, 3)")
     evaluate.add_argument("--lpips-weights", help="folder with lpips_{vgg,alex}.safetensors (default $CODECSPLAT_LPIPS_WEIGHTS)")
-    evaluate.add_argument("--png-sh-clusters", type=int, default=8192, help="K_SH of the PNG baseline")
-    evaluate.add_argument("--kmeans-iterations", type=int, default=10, help="Lloyd steps of the PNG baseline's k-means")
+    evaluate.add_argument("--png-sh-clusters", type=int, default=8192, help="K_SH, colour clusters of the PNG baseline (default %(default)s)")
+    evaluate.add_argument("--kmeans-iterations", type=int, default=10, help="Lloyd steps of the PNG baseline's k-means (default %(default)s)")
     evaluate.add_argument("--size", help="WIDTHxHEIGHT instead of the protocol's image size (its depth range stays)")
     evaluate.add_argument("--restart", action="store_true",
                           help="start over instead of resuming the finished samples in OUT/results.json")
@@ -254,8 +262,9 @@ def _cmd_demo(args) -> int:
 
     device = _device(args)
     model = _load_model(args, device)
-    config = DemoConfig(out=args.out, lambdas=tuple(_number_list(float, args.lambdas, "--lambdas")), seed=args.seed,
-                        target_views=args.targets, lpips_weights=args.lpips_weights, progress=not args.json)
+    config = DemoConfig(out=args.out, scene=args.scene, lambdas=tuple(_number_list(float, args.lambdas, "--lambdas")),
+                        seed=args.seed, target_views=args.targets, lpips_weights=args.lpips_weights,
+                        progress=not args.json)
     summary = run_demo(model, config, device)
     lines = [f"demo scene {summary['scene']} ({summary['image_size'][0]}x{summary['image_size'][1]}, "
              f"{len(summary['context_views'])} context + {len(summary['target_views'])} target views) on {device}:"]

@@ -1,14 +1,19 @@
-"""``codecsplat demo``: the shipped model on a built-in procedural scene, end to end, offline.
+"""``codecsplat demo``: the shipped model on a real captured scene, end to end, offline.
 
-A procedural room (:func:`codecsplat_warp.data.procedural_scene`, nothing to download) is drawn at the
-model's image size; its context views are encoded at a few lambdas, each bitstream is decoded and its
-target views rendered and scored against the exact ground-truth images. Written to the output folder:
+The scene is, by name, ``nerd_mary_rose`` (four photographs of a wooden tankard raised with the Mary Rose, shipped
+with the package at 256x256: CC BY 4.0, see its ``cameras.json``; a held-out scene that no training run has seen)
+or ``procedural`` (a procedural room, :func:`codecsplat_warp.data.procedural_scene`); any other value is a scene
+folder (any format :func:`~codecsplat_warp.data.load_scene` reads). A folder's context views are the model's view
+count around its middle view, with the targets between them (:func:`~codecsplat_warp.data.split_context_targets`),
+resized and centre-cropped to the model's image size. The context views are encoded at a few lambdas, each
+bitstream is decoded and its target views rendered and scored against the photographs. Written to the output
+folder:
 
 * ``scene-lambda<L>.csplat``: the scene bitstreams;
 * ``scene.ply``: the Gaussians decoded from the largest lambda, pruned of those that no demo view (context or
   target) can show (:func:`~codecsplat_warp.model.prune.prune_gaussians`; 3DGS PLY);
-* ``renders/target<i>-lambda<L>.png`` and ``comparison.png`` (ground truth | copy the nearest context view |
-  the codec-free path | one column per lambda);
+* ``renders/target<i>-lambda<L>.png`` and ``comparison.png`` (the context photographs | per target: the
+  photograph | copy the nearest context view | the codec-free path | one column per lambda);
 * ``rate_distortion.png`` and ``summary.json`` (bytes per part, metrics, seconds; the two references under
   ``references``: what copying the nearest context view scores at zero bytes, and the model without its codec).
 """
@@ -26,10 +31,10 @@ from tqdm.auto import tqdm
 
 from .cameras import Cameras
 from .codec import bytes_report, check_lambda
+from .data import load_scene, split_context_targets
 from .data.procedural import ProceduralConfig, procedural_scene
 from .errors import InputError
-from .data import split_context_targets
-from .eval.protocols import Sample, nearest_context_images
+from .eval.protocols import Protocol, Sample, nearest_context_images, protocol_sample
 from .eval.report import BACKBONE, COPY_NEAREST, format_bytes, plot_comparison, plot_rate_distortion
 from .export.files import atomic_output, write_bytes, write_json
 from .export.ply import write_ply
@@ -39,6 +44,13 @@ from .metrics.image import ImageMetrics
 from .model.codecsplat import model_id
 from .model.prune import prune_gaussians
 
+SHIPPED_SCENES = pathlib.Path(__file__).resolve().parent / "assets" / "scenes"
+"""Scene folders shipped with the package, each usable by its folder name (``--scene NAME``)."""
+
+PROCEDURAL = "procedural"
+"""Scene name of the procedural room."""
+
+DEMO_SCENE = "nerd_mary_rose"
 DEMO_SEED = 3
 DEMO_LAMBDAS = (16.0, 128.0, 1024.0)
 DEMO_TARGET_VIEWS = 2
@@ -49,6 +61,7 @@ class DemoConfig:
     """Options of ``codecsplat demo``."""
 
     out: str = "codecsplat-demo"
+    scene: str = DEMO_SCENE
     lambdas: tuple[float, ...] = DEMO_LAMBDAS
     seed: int = DEMO_SEED
     target_views: int = DEMO_TARGET_VIEWS
@@ -56,7 +69,38 @@ class DemoConfig:
     progress: bool = True
 
 
-def demo_sample(model_config, seed: int, target_views: int) -> Sample:
+def builtin_scenes() -> list[str]:
+    """Names ``--scene`` takes besides a path: the shipped scene folders and :data:`PROCEDURAL`."""
+    return sorted(p.name for p in SHIPPED_SCENES.iterdir() if p.is_dir()) + [PROCEDURAL]
+
+
+def demo_sample(model_config, scene: str, seed: int, target_views: int) -> Sample:
+    """The demo's context and target views of ``scene`` (a built-in name or a scene folder, see the module
+    docstring) at the model's image size and view count; ``seed`` draws the procedural room.
+
+    Raises:
+        InputError: ``scene`` is neither a built-in name nor an existing path.
+        DataError: the folder holds no readable scene, or fewer views than the demo needs.
+    """
+    if scene == PROCEDURAL:
+        return procedural_sample(model_config, seed, target_views)
+    folder = SHIPPED_SCENES / scene if scene in builtin_scenes() else pathlib.Path(scene)
+    if not folder.exists():
+        raise InputError(f"demo scene {scene!r} is neither a built-in scene ({', '.join(builtin_scenes())}) "
+                         "nor an existing scene folder")
+    return folder_sample(folder, model_config, target_views)
+
+
+def folder_sample(folder: pathlib.Path, model_config, target_views: int) -> Sample:
+    """The model's view count around the middle view of the scene in ``folder`` as context, ``target_views``
+    targets between them, resized and centre-cropped to the model's size (the scene keeps its near/far)."""
+    scene = load_scene(folder)
+    context, target = split_context_targets(scene.cameras, scene.num_views // 2, model_config.num_views, target_views)
+    protocol = Protocol("demo", model_config.width, model_config.height, model_config.num_views, target_views)
+    return protocol_sample(folder.name, scene, protocol, context, target)
+
+
+def procedural_sample(model_config, seed: int, target_views: int) -> Sample:
     """A procedural room at the model's size, captured forward-facing (cameras on a small circle, looking the same
     way, as in an LLFF capture): ``num_views`` context views, targets between them."""
     views = model_config.num_views
@@ -81,7 +125,7 @@ def run_demo(model, config: DemoConfig, device: torch.device) -> dict:
     start = time.perf_counter()
     quiet = None if config.progress else True  # None: a bar only when stderr is a terminal
     with tqdm(total=3 + 2 * len(lambdas), desc="demo", unit="step", disable=quiet) as progress:
-        sample = demo_sample(model.config, config.seed, config.target_views).to(device)
+        sample = demo_sample(model.config, config.scene, config.seed, config.target_views).to(device)
         progress.update(1)
         references, reference_renders = reference_views(model, sample, metrics)
         progress.update(1)
@@ -145,7 +189,7 @@ QUALITY_COLUMNS = (("psnr", "PSNR dB", ".2f"), ("ssim", "SSIM", ".3f"), ("lpips_
 
 def quality_table(summary: dict) -> str:
     """Markdown table of the device-independent results of a demo summary: per lambda the bitstream bytes and
-    the target-view quality (LPIPS columns only when the run had the weights). docs/training.md quotes it."""
+    the target-view quality (LPIPS columns only when the run had the weights). docs/getting-started.md quotes it."""
     columns = [c for c in QUALITY_COLUMNS if all(c[0] in row for row in summary["rows"])]
     lines = ["| λ | bytes | " + " | ".join(header for _, header, _ in columns) + " |",
              "|---|---|" + "---|" * len(columns)]
@@ -168,8 +212,8 @@ def _demo_views(sample: Sample) -> Cameras:
 
 def _write_images(out: pathlib.Path, sample: Sample, rows: list[dict], renders: list[np.ndarray],
                   references: list[dict], reference_renders: list[np.ndarray]) -> list[str]:
-    """Per-target PNG renders and ``comparison.png`` (rows: targets; columns: ground truth, the references,
-    each lambda)."""
+    """Per-target PNG renders and ``comparison.png`` (first column: the context photographs; then one row per
+    target: its photograph, the references, each lambda)."""
     import imageio.v3 as iio
 
     paths = []
@@ -180,7 +224,13 @@ def _write_images(out: pathlib.Path, sample: Sample, rows: list[dict], renders: 
                 iio.imwrite(tmp, frame, extension=".png")
             paths.append(str(path))
     truth = to_uint8_frames(sample.target_images)
-    titles = (["ground truth"] + [f"{r['method']}: {r['psnr']:.2f} dB" for r in references]
-              + [f"λ={r['lam']:g}: {format_bytes(r['bytes'])}, {r['psnr']:.2f} dB" for r in rows])
-    plot_comparison([truth] + reference_renders + renders, titles, out / "comparison.png")
+    titles = (["target photograph"] + [f"{_short(r['method'])}\n{r['psnr']:.2f} dB" for r in references]
+              + [f"λ={r['lam']:g}: {format_bytes(r['bytes'])}\n{r['psnr']:.2f} dB" for r in rows])
+    plot_comparison([truth] + reference_renders + renders, titles, out / "comparison.png",
+                    inputs=to_uint8_frames(sample.context_images), input_title="context photograph")
     return paths + [str(out / "comparison.png")]
+
+
+def _short(method: str) -> str:
+    """A reference's name short enough for a panel title."""
+    return {COPY_NEAREST: "copy nearest context", BACKBONE: "codec-free"}.get(method, method)

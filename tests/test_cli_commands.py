@@ -16,7 +16,7 @@ import torch
 
 from codecsplat_warp.cli import BENCHMARKS, EXIT_USER, build_parser, main
 from codecsplat_warp.data import ProceduralConfig, load_scene, procedural_scene
-from codecsplat_warp.demo import DEMO_SEED, demo_sample
+from codecsplat_warp.demo import DEMO_SCENE, DEMO_SEED, demo_sample
 from codecsplat_warp.export import read_ply, video
 from codecsplat_warp.metrics import WEIGHTS_ENV, psnr
 from codecsplat_warp.model import CodecSplat
@@ -121,8 +121,8 @@ def test_eval_writes_both_tables_with_baselines_and_plots(workspace):
 def test_demo_writes_bitstreams_renders_ply_metrics_and_plots(workspace):
     summary = codecsplat(workspace, "demo", "--lambdas", "16,1024", "-o", "demo")
     out = workspace / "demo"
-    assert [r["lam"] for r in summary["rows"]] == [16, 1024]
-    truth = demo_sample(get_preset("tiny"), DEMO_SEED, 2).target_images
+    assert summary["scene"] == DEMO_SCENE and [r["lam"] for r in summary["rows"]] == [16, 1024]
+    truth = demo_sample(get_preset("tiny"), DEMO_SCENE, DEMO_SEED, 2).target_images
     for row in summary["rows"]:
         assert row["bytes"] == (out / f"scene-lambda{row['lam']:g}.csplat").stat().st_size
         renders = [iio.imread(out / "renders" / f"target{i}-lambda{row['lam']:g}.png") for i in range(2)]
@@ -132,6 +132,22 @@ def test_demo_writes_bitstreams_renders_ply_metrics_and_plots(workspace):
     for name in ("comparison.png", "rate_distortion.png", "renders/target1-lambda1024.png", "summary.json"):
         assert (out / name).is_file(), name
     assert all((workspace / f).is_file() for f in summary["files"])
+
+
+def test_the_shipped_demo_scene_has_its_context_views_around_targets_between_them():
+    sample = demo_sample(get_preset("re10k"), DEMO_SCENE, DEMO_SEED, 2)
+    assert sample.context_images.shape == sample.target_images.shape == (2, 3, 256, 256)
+    centres = sample.context_cameras.centers.double()
+    for target in sample.target_cameras.centers.double():  # each target lies between the two context cameras
+        assert float((target - centres).norm(dim=-1).max()) < float((centres[0] - centres[1]).norm())
+
+
+@pytest.mark.parametrize("scene", ["procedural", "scenes/b"])
+def test_demo_runs_on_the_procedural_room_and_on_a_scene_folder(workspace, scene):
+    summary = codecsplat(workspace, "demo", "--scene", scene, "--lambdas", "64", "--targets", "1", "-o", "demo-other")
+    expected = demo_sample(get_preset("tiny"), str(workspace / scene) if "/" in scene else scene, DEMO_SEED, 1)
+    assert summary["scene"] == expected.scene and summary["target_views"] == expected.target
+    assert (workspace / "demo-other" / "comparison.png").is_file()
 
 
 def _grey_psnr(scenes: pathlib.Path) -> float:
@@ -166,6 +182,8 @@ def test_user_mistakes_exit_1_with_one_line(workspace, capsys):
     assert "--cameras" in _one_line_error(capsys)
     assert main(["eval", "--data", scene, "--baselines", "zip", *ckpt]) == EXIT_USER
     assert "zip" in _one_line_error(capsys)
+    assert main(["demo", "--scene", str(workspace / "no-such-scene"), "-o", str(workspace / "d"), *ckpt]) == EXIT_USER
+    assert "nerd_mary_rose" in _one_line_error(capsys)  # the error names the built-in scenes
     assert not (workspace / "x.csplat").exists()
 
 

@@ -25,6 +25,9 @@ def test_wheel_installs_in_fresh_venv_and_imports_kernels(tmp_path):
     assert "codecsplat_warp/kernels/reproject.py" in names
     assert not any(n.startswith("kernels/") for n in names), "no top-level kernels package may ship"
     assert "codecsplat_warp/assets/codecsplat-default.safetensors" in names, "the shipped model must be in the wheel"
+    demo_scene = ROOT / "codecsplat_warp" / "assets" / "scenes" / "nerd_mary_rose"
+    for file in [demo_scene / "cameras.json", *sorted((demo_scene / "images").iterdir())]:  # codecsplat demo's scene
+        assert file.relative_to(ROOT).as_posix() in names, f"{file.name} of the demo scene is missing from the wheel"
     for init in (ROOT / "codecsplat_warp").rglob("__init__.py"):
         assert init.relative_to(ROOT).as_posix() in names, f"{init.parent.name} is missing from pyproject's packages"
 

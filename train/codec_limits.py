@@ -55,17 +55,24 @@ def sample_scores(model: CodecSplat, sample: Sample, lambdas: list[float]) -> di
     return scores
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m train.codec_limits``."""
     parser = argparse.ArgumentParser(prog="python -m train.codec_limits", description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", help="model file (default: the shipped model)")
     parser.add_argument("--data", type=pathlib.Path, required=True, help="folder of scene folders")
     parser.add_argument("--index", type=pathlib.Path, required=True, help="evaluation index JSON")
-    parser.add_argument("--protocol", choices=[p for p in PROTOCOLS if PROTOCOLS[p].width], default="re10k")
-    parser.add_argument("--samples", type=int, default=0, help="only the first N samples of the index (0: all)")
-    parser.add_argument("--lambdas", default="16,1024", help="comma list of lambdas")
-    parser.add_argument("--device", default="auto")
+    parser.add_argument("--protocol", choices=[p for p in PROTOCOLS if PROTOCOLS[p].width], default="re10k",
+                        help="re10k: 256x256; dl3dv: 256x448 (HxW) (default %(default)s)")
+    parser.add_argument("--samples", type=int, default=0,
+                        help="only the first N samples of the index (default %(default)s: all)")
+    parser.add_argument("--lambdas", default="16,1024", help="comma list of lambdas in [16, 1024] (default %(default)s)")
+    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default %(default)s)")
     parser.add_argument("--out", type=pathlib.Path, required=True, help="JSON to write")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
     device = resolve_device(args.device)
     model = load_pretrained(args.model, device=device)
     samples = index_samples(find_scenes(args.data), args.index, PROTOCOLS[args.protocol])

@@ -1,7 +1,7 @@
 """Training curves of one or more runs (their ``metrics.jsonl``): a PNG and a table of throughput and loss.
 
     python -m train.curves runs/one-gpu runs/ddp-2gpu --labels "1 GPU, accumulate 2" "2 GPUs, DDP" \\
-        --metrics loss,psnr --out docs/ddp-vs-single.png
+        --metrics loss,psnr --out ddp-vs-one-gpu.png
 
 Each metric gets a panel against step; with ``--against-time`` a second row plots it against wall-clock
 seconds (``elapsed_s``, logged by :mod:`train.stage1`). The table (stdout, and JSON with ``--json``) gives per
@@ -102,16 +102,24 @@ def plot(runs: dict[str, list[dict]], metrics: list[str], path: pathlib.Path, ag
     pyplot.close(fig)
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m train.curves``."""
     parser = argparse.ArgumentParser(prog="python -m train.curves", description=__doc__.split("\n\n")[0])
     parser.add_argument("runs", nargs="+", type=pathlib.Path, help=f"run folders (or {METRICS_FILE} files)")
     parser.add_argument("--labels", nargs="+", help="one label per run (default: the folder names)")
-    parser.add_argument("--metrics", default="loss,psnr", help="comma list of logged metrics to plot")
-    parser.add_argument("--against-time", action="store_true", help="also plot against wall-clock seconds")
-    parser.add_argument("--smooth", type=int, default=1, help="draw the trailing mean over this many records")
+    parser.add_argument("--metrics", default="loss,psnr",
+                        help="comma list of logged metrics to plot, e.g. loss,psnr,bpp,lpips (default %(default)s)")
+    parser.add_argument("--against-time", action="store_true",
+                        help="also plot against wall-clock seconds (default off: against steps only)")
+    parser.add_argument("--smooth", type=int, default=1,
+                        help="draw the trailing mean over this many logged records (default %(default)s: none)")
     parser.add_argument("--out", type=pathlib.Path, required=True, help="PNG to write")
-    parser.add_argument("--json", type=pathlib.Path, help="also write the table as JSON here")
-    args = parser.parse_args(argv)
+    parser.add_argument("--json", type=pathlib.Path, help="also write the table as JSON here (default: none)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
     labels = args.labels or [p.name for p in args.runs]
     if len(labels) != len(args.runs):
         raise InputError(f"{len(args.runs)} runs but {len(labels)} labels")

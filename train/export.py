@@ -31,12 +31,18 @@ def export(run, path, half: bool) -> str:
     return model_id(model)
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m train.export``."""
     parser = argparse.ArgumentParser(prog="python -m train.export", description=__doc__.split("\n\n")[0])
-    parser.add_argument("run", type=pathlib.Path, help="stage-2 run folder")
+    parser.add_argument("run", type=pathlib.Path, help="stage-2 run folder (its weight average is exported)")
     parser.add_argument("path", type=pathlib.Path, help="model file to write (.safetensors)")
-    parser.add_argument("--half", action="store_true", help="store float16 weights")
-    args = parser.parse_args(argv)
+    parser.add_argument("--half", action="store_true",
+                        help="store float16 weights, half the file size (default off: float32)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
     identifier = export(args.run, args.path, args.half)
     print(f"wrote {args.path} ({args.path.stat().st_size / 2**20:.2f} MiB), model id {identifier}")
 

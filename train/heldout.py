@@ -55,10 +55,16 @@ def write_indices(data_root) -> None:
         INDEX_FILES[protocol].write_text("{\n" + ",\n".join(lines) + "\n}\n")
 
 
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m train.heldout``."""
+    parser = argparse.ArgumentParser(prog="python -m train.heldout", description="(re)write the held-out index "
+                                     "files under train/heldout_index/")
+    parser.add_argument("data", type=pathlib.Path, help="folder of scene folders holding the held-out scenes")
+    return parser
+
+
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m train.heldout", description="write the held-out index files")
-    parser.add_argument("data", type=pathlib.Path, help="folder of scene folders (../shared/data/scenes)")
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     write_indices(args.data)
     print("wrote " + ", ".join(str(p) for p in INDEX_FILES.values()))
 

@@ -39,14 +39,20 @@ def pack_scene(source: pathlib.Path, target: pathlib.Path, short_side: int, qual
     return written + (target / "cameras.json").stat().st_size
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m train.pack_scenes``."""
     parser = argparse.ArgumentParser(prog="python -m train.pack_scenes", description=__doc__.split("\n\n")[0])
     parser.add_argument("source", type=pathlib.Path, help="folder of scene folders (each with cameras.json)")
-    parser.add_argument("target", type=pathlib.Path)
-    parser.add_argument("--short-side", type=int, default=256, help="shorter image side after packing, pixels")
-    parser.add_argument("--quality", type=int, default=85, help="JPEG quality")
+    parser.add_argument("target", type=pathlib.Path, help="folder to write the packed scene folders to")
+    parser.add_argument("--short-side", type=int, default=256,
+                        help="shorter image side after packing, pixels (default %(default)s)")
+    parser.add_argument("--quality", type=int, default=85, help="JPEG quality, 1-95 (default %(default)s)")
     parser.add_argument("--scenes", default="", help="comma-separated scene names (default: all)")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
     names = [n for n in args.scenes.split(",") if n] or sorted(p.parent.name for p in args.source.glob("*/cameras.json"))
     if not names:
         raise SystemExit(f"no scenes (*/cameras.json) under {args.source}")

@@ -114,6 +114,51 @@ class TrainConfig:
     ema_decay: float = 0.999
 
 
+OPTION_HELP = {
+    "preset": "network sizes: re10k (2 views, 256x256), dl3dv (8 views, 256x448) or tiny (for tests)",
+    "data": "procedural; a folder of scene folders; chunks:DIR (RE10K/ACID/DL3DV .torch chunks with index.json); "
+            "or mix: before either of the last two, to add procedural scenes",
+    "holdout": "comma list of scene folders (or chunk keys) left out of training (default: none)",
+    "out": "run folder: checkpoints, config.json, metrics.jsonl, TensorBoard logs; rerunning resumes from it",
+    "steps": "optimiser steps in all (the cosine schedule ends here)",
+    "lr": "peak AdamW learning rate, after the warm-up",
+    "weight_decay": "AdamW weight decay",
+    "warmup_steps": "steps of linear learning-rate warm-up, then cosine decay to 10 %% of --lr",
+    "grad_clip": "clip the gradient's global L2 norm to this",
+    "lpips_weight": "weight of LPIPS-VGG beside the MSE in the render loss (Eq. 14)",
+    "lpips_weights": "folder with lpips_vgg.safetensors (default: $CODECSPLAT_LPIPS_WEIGHTS, else ../shared/weights)",
+    "checkpoint_every": "write a checkpoint every this many steps (and at the end or on SIGTERM)",
+    "keep_checkpoints": "how many of the newest checkpoints to keep",
+    "log_every": "log metrics (metrics.jsonl, TensorBoard) every this many steps",
+    "seed": "seed of the scene drawing and the initial weights; the same seed draws the same batches",
+    "device": "cpu, cuda, cuda:N or auto (CUDA when torch sees a GPU; under torchrun, the local rank's GPU)",
+    "workers": "data-loader processes per training process (CUDA only; 0 on the CPU)",
+    "time_limit_s": "stop cleanly with a checkpoint after this many seconds of training (0: no limit)",
+    "accumulate": "batches per optimiser step per process (global batch = processes x this)",
+    "views": "comma list of context view counts, one drawn per batch; list one twice to draw it twice as often "
+             "(default: the preset's view count)",
+    "sizes": "comma list of HEIGHTxWIDTH image sizes in pixels, one drawn per batch (default: the preset's size)",
+    "batch_views": "context views per batch: as many scenes as fill it at the drawn view count (default 0: one scene)",
+    "procedural_fraction": "share of procedural scenes in a batch with mix: data, 0 to 1",
+    "photo_textures": "1: procedural scenes also get crops of the training photographs as textures; 0: synthetic only",
+    "photometric": "1: each scene gets one random brightness, contrast, saturation and gamma change for all its views",
+    "mirror": "1: half of the scenes are mirrored left-right, images and cameras together",
+    "context_gap": "MIN,MAX frames between a chunk scene's context views (default: DepthSplat's RE10K schedule, "
+                   "25-45 frames at step 0 widening to 45-192 at step 150k)",
+    "mono": "monocular prior in MVEnc: none or vgg16 (frozen ImageNet VGG16; default: the preset's, none)",
+    "mono_weights": "VGG16 weights for --mono vgg16 (default: lpips_vgg.safetensors of the LPIPS weights folder)",
+    "init": "warm start from a run folder or a model file: every weight whose name and shape match "
+            "(default: none, random weights)",
+    "depth_aux_weight": "weight of the decoder depth head's auxiliary L1 loss on detached features",
+    "depth_weight": "weight of the log-depth L1 against the scenes' reference depth where it is known (exact for "
+                    "procedural scenes, multi-view stereo from codecsplat depth for real ones); 0: off",
+    "self_render_weight": "weight of the render loss on the context views themselves; 0: off",
+    "ema_decay": "decay of the weights' exponential moving average, which export, validation and warm starts use "
+                 "(0: keep none)",
+}
+"""``--help`` text of every :class:`TrainConfig` field (its default is appended when it has one)."""
+
+
 LOGGED = ("loss", "mse", "lpips", "psnr", "depth_aux", "depth_ref", "depth_ref_pixels", "self_psnr", "grad_norm", "lr")
 """Training metrics written every ``log_every`` steps (TensorBoard and :data:`METRICS_FILE`), averaged over the
 step's batches (micro-batches and DDP ranks); each record also has ``step``, ``elapsed_s`` (wall seconds since
@@ -460,19 +505,31 @@ def _micro_batches(loader, accumulate: int):
             group = []
 
 
-def parse_args(argv: list[str] | None = None, config_class: type = TrainConfig, prog: str = "python -m train.stage1",
-               description: str = __doc__.split("\n\n")[0]) -> TrainConfig:
-    """Command line -> ``config_class`` (:class:`TrainConfig` or a subclass; every field is a flag)."""
+def build_parser(config_class: type = TrainConfig, option_help: dict[str, str] | None = None,
+                 prog: str = "python -m train.stage1", description: str = __doc__.split("\n\n")[0]
+                 ) -> argparse.ArgumentParser:
+    """The command line of ``config_class`` (:class:`TrainConfig` or a subclass): every field is a ``--flag``, with
+    its text from ``option_help`` (default :data:`OPTION_HELP`) and its default."""
+    option_help = OPTION_HELP if option_help is None else option_help
     parser = argparse.ArgumentParser(prog=prog, description=description)
     for field in fields(config_class):
         kind = {"int": int, "float": float}.get(str(field.type).removesuffix(" | None"), str)
-        parser.add_argument("--" + field.name.replace("_", "-"), type=kind, default=field.default)
-    args = parser.parse_args(argv)
+        shown = "" if field.default in ("", None) else " (default %(default)s)"
+        parser.add_argument("--" + field.name.replace("_", "-"), type=kind, default=field.default,
+                            help=option_help[field.name] + shown)
+    return parser
+
+
+def parse_args(argv: list[str] | None = None, config_class: type = TrainConfig,
+               parser: argparse.ArgumentParser | None = None) -> TrainConfig:
+    """Command line -> ``config_class`` (:class:`TrainConfig` or a subclass, parsed by ``parser``, default
+    :func:`build_parser`)."""
+    args = (parser or build_parser()).parse_args(argv)
     config = config_class(**vars(args))
     if config.steps < 1 or config.checkpoint_every < 1 or config.log_every < 1 or config.accumulate < 1:
         raise InputError("--steps, --checkpoint-every, --log-every and --accumulate must be >= 1")
     if not 0.0 <= config.ema_decay < 1.0:
-        raise InputError(f"--ema-decay must be in [0, 1) (0: keep no weight average), got {config.ema_decay}")
+        raise InputError(f"--ema-decay must be in [0, 1) (0: keep none), got {config.ema_decay}")
     return config
 
 

@@ -40,6 +40,7 @@ The training loop, checkpoints, resumption, TensorBoard, metrics.jsonl, bf16 and
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 import math
@@ -90,6 +91,30 @@ class Stage2Config(stage1.TrainConfig):
     codec_latent_channels: str = ""
     codec_finest_stride: int = 0
     trainable: str = ""
+
+
+OPTION_HELP = {
+    **stage1.OPTION_HELP,
+    "preset": "ignored: the network sizes are those of the --init run",
+    "init": "the stage-1 run folder to start from: backbone, GS head, decoder depth head; R_post copies R_pre "
+            "(default: none, which only a run being resumed may leave out)",
+    "gamma": "weight of the depth term |S - S_enc|_1 inside the lambda bracket (Eq. 16)",
+    "beta": "weight of the rate in bits per context pixel (default: 1e-4 for the dl3dv preset, else 4e-4)",
+    "rate_warmup_steps": "steps over which beta ramps up linearly from 0 (0: full rate from the first step)",
+    "coded_every": "really encode the step's scene every this many steps and log the coded bits",
+    "codec_init": "warm-start the latent codec, decoder depth head and R_post from this model file or run "
+                  "(default: none, R_post from R_pre and the codec from scratch)",
+    "feature_weight": "alpha at the first step: weight of the relative feature error |F^_c - F_c|^2 / |F_c|^2",
+    "feature_weight_final": "alpha after --feature-decay-steps (linear in between)",
+    "feature_decay_steps": "steps over which alpha falls from --feature-weight to --feature-weight-final",
+    "codec_latent_channels": "comma list of latent channels per level, coarsest first, e.g. 16,24,32,16 "
+                             "(default: the --init run's codec; a --codec-init codec with fewer levels is grown)",
+    "codec_finest_stride": "stride of the finest latent level on the feature grid: 4 (1/8 of the image) or 2 (1/4) "
+                           "(default 0: the --init run's)",
+    "trainable": "comma list of parameter-name prefixes; only those train, e.g. codec.synthesis "
+                 "(default: every stage-2 module)",
+}
+"""``--help`` text of every :class:`Stage2Config` field."""
 
 
 def rate_weight(config: Stage2Config, model_config: ModelConfig) -> float:
@@ -290,9 +315,14 @@ def train(config: Stage2Config, source: BatchSource | None = None, progress: boo
     return stage1.train(config, source, run_model_config(config), progress, stage=STAGE2)
 
 
+def build_parser() -> argparse.ArgumentParser:
+    """The stage-2 command line: :class:`Stage2Config`'s fields as flags."""
+    return stage1.build_parser(Stage2Config, OPTION_HELP, "python -m train.stage2", __doc__.split("\n\n")[0])
+
+
 def parse_args(argv: list[str] | None = None) -> Stage2Config:
     """Command line -> :class:`Stage2Config` (every field is a flag)."""
-    config = stage1.parse_args(argv, Stage2Config, "python -m train.stage2", __doc__.split("\n\n")[0])
+    config = stage1.parse_args(argv, Stage2Config, build_parser())
     if config.coded_every < 1 or config.rate_warmup_steps < 0 or config.feature_decay_steps < 1:
         raise InputError("--coded-every and --feature-decay-steps must be >= 1 and --rate-warmup-steps >= 0")
     return config

@@ -139,18 +139,28 @@ def plot_curve(records: list[dict], scores: list[SceneScore], step: int, path: p
     plt.close(fig)
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m train.validate``."""
     parser = argparse.ArgumentParser(prog="python -m train.validate", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--run", type=pathlib.Path, required=True, help="training run folder")
+    parser.add_argument("--run", type=pathlib.Path, required=True, help="training run folder (stage 1 or 2)")
     parser.add_argument("--data", type=pathlib.Path, required=True, help="folder of real scene folders")
-    parser.add_argument("--index", type=pathlib.Path, required=True, help="evaluation index JSON of held-out samples")
-    parser.add_argument("--protocol", choices=[p for p in PROTOCOLS if PROTOCOLS[p].width], default="re10k")
+    parser.add_argument("--index", type=pathlib.Path, required=True,
+                        help="evaluation index JSON of held-out samples, e.g. train/heldout_index/index-re10k.json")
+    parser.add_argument("--protocol", choices=[p for p in PROTOCOLS if PROTOCOLS[p].width], default="re10k",
+                        help="re10k: 256x256; dl3dv: 256x448 (HxW); the view counts come from the index "
+                        "(default %(default)s)")
     parser.add_argument("--step", type=int, help="validate the checkpoint of this step (default: the newest)")
-    parser.add_argument("--device", default="auto")
-    parser.add_argument("--out", type=pathlib.Path, help="JSON summary (default RUN/validation-PROTOCOL.json)")
+    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default %(default)s)")
+    parser.add_argument("--out", type=pathlib.Path,
+                        help="JSON summary; a PNG curve is written beside it (default RUN/validation-PROTOCOL.json)")
     parser.add_argument("--mvs-depth", type=pathlib.Path,
-                        help="folder of reference depth, DIR/<scene>/depth.json (codecsplat depth): D_enc's errors")
-    args = parser.parse_args(argv)
+                        help="folder of reference depth, DIR/<scene>/depth.json (codecsplat depth): scores D_enc's "
+                        "AbsRel and delta<1.25 (default: no depth scores)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
     device = resolve_device(args.device)
     reference = ReferenceDepth(args.mvs_depth) if args.mvs_depth else None
     model, step = load_run(args.run, device, args.step)

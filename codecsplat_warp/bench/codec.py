@@ -58,16 +58,17 @@ LAMBDA = 128.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--shapes", default=",".join(SHAPES), help=f"comma list of {', '.join(SHAPES)}")
+    parser.add_argument("--shapes", default=",".join(SHAPES), help=f"comma list of {', '.join(SHAPES)} (default %(default)s)")
     parser.add_argument("--reps", type=int, default=None, help="timed repetitions (default: 20 on CUDA, 3 on CPU)")
     parser.add_argument("--checkpoint", default=None, help="pretrained model file (default: seeded random weights)")
     parser.add_argument("--posterior-gain", type=float, default=10.0,
-                        help="scale of the random model's posterior (realistic symbols without training)")
+                        help="scale of the random model's posterior, for realistic symbol counts without training "
+                             "(default %(default)g)")
     parser.add_argument("--no-cpu-check", action="store_true",
                         help="on CUDA, skip decoding each bitstream with a CPU copy of the model in this process "
                              "(for machines whose Warp cannot compile CPU kernels; use --write-bitstream and "
                              "--decode-bitstream on another machine instead)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random model and inputs")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the random model and inputs (default %(default)s)")
     parser.add_argument("--write-bitstream", default=None, metavar="DIR",
                         help="write each shape's bitstream and symbol record to DIR")
     parser.add_argument("--decode-bitstream", default=None, metavar="FILE",

@@ -825,7 +825,7 @@ COLUMNS = [
 # --------------------------------------------------------------------------------------------------
 # Command line (``python -m codecsplat_warp.bench.extreme``; also usable as a ``codecsplat bench`` module)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--cases", default="", help="comma list of substrings; run only the cases whose name has one")
+    parser.add_argument("--cases", default="", help="comma list of substrings; run only the cases whose name has one (default: every case)")
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -843,6 +843,19 @@ def run(args: argparse.Namespace) -> dict:
             "table": table}  # fmt: skip
 
 
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m codecsplat_warp.bench.extreme`` (``codecsplat bench extreme`` takes the
+    same options)."""
+    parser = argparse.ArgumentParser(prog="python -m codecsplat_warp.bench.extreme", description=__doc__.split("\n")[0])
+    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto: CUDA when available "
+                        "(default %(default)s)")
+    parser.add_argument("--out", help="write the JSON result to this file (default: none)")
+    parser.add_argument("--json", action="store_true", help="print the JSON result on stdout, the table on stderr "
+                        "(default off)")
+    add_arguments(parser)
+    return parser
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m codecsplat_warp.bench.extreme [--device cuda] [--cases ...] [--out FILE] [--json]``.
 
@@ -850,12 +863,7 @@ def main(argv: list[str] | None = None) -> int:
     """
     from ..device import resolve_device
 
-    parser = argparse.ArgumentParser(prog="python -m codecsplat_warp.bench.extreme", description=__doc__.split("\n")[0])
-    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (CUDA when available)")
-    parser.add_argument("--out", help="write the JSON result to this file")
-    parser.add_argument("--json", action="store_true", help="print the JSON result on stdout (table on stderr)")
-    add_arguments(parser)
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(argv)
     args.device = str(resolve_device(args.device))
     result = run(args)
     if args.out:

@@ -43,7 +43,7 @@ IMPLEMENTATIONS = ("warp", "torch")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--shapes", default=",".join(SHAPES), help=f"comma list of {', '.join(SHAPES)}")
+    parser.add_argument("--shapes", default=",".join(SHAPES), help=f"comma list of {', '.join(SHAPES)} (default %(default)s)")
     parser.add_argument("--reps", type=int, default=None, help="timed repetitions (default: 30 on CUDA, 3 on CPU)")
     parser.add_argument("--validate", choices=("on", "off"), default="on",
                         help="finite/positive input checks (one host sync per call; on by default, as for users)")

@@ -72,7 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenes", default=None,
                         help=f"comma list of scene folder names (default: {DEFAULT_SCENES} spread over --data)")
     parser.add_argument("--checkpoint", default=None, help="pretrained model file (default: the shipped model)")
-    parser.add_argument("--lambda", dest="lam", type=float, default=128.0, help="rate trade-off of the encodes")
+    parser.add_argument("--lambda", dest="lam", type=float, default=128.0, help="rate trade-off of the encodes, in [16, 1024] (default %(default)g)")
     parser.add_argument("--reps", type=int, default=None, help="timed repetitions (default: 20 on CUDA, 3 on CPU)")
     parser.add_argument("--scale", type=float, default=None,
                         help="fraction of the raster scene's Gaussians kept in b and c (default: 1 on CUDA, "

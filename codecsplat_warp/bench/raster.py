@@ -55,12 +55,13 @@ REFERENCE_WORKLOAD = Workload("dense-ref", 1, 40, 40)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--workloads", default="re10k,dl3dv", help=f"comma list of {', '.join(WORKLOADS)}")
+    parser.add_argument("--workloads", default="re10k,dl3dv", help=f"comma list of {', '.join(WORKLOADS)} (default %(default)s)")
     parser.add_argument("--reps", type=int, default=None, help="timed repetitions (default: 30 on CUDA, 3 on CPU)")
-    parser.add_argument("--scale", type=float, default=1.0, help="fraction of the Gaussians kept (0 < scale <= 1)")
+    parser.add_argument("--scale", type=float, default=1.0, help="fraction of the Gaussians kept, 0 < scale <= 1 (default %(default)g)")
     parser.add_argument("--no-gsplat", action="store_true", help="skip gsplat even when it is importable")
     parser.add_argument("--kernels", type=int, default=0, metavar="N",
-                        help="CUDA: also list the N kernels with the most GPU time per call, ours and gsplat's")
+                        help="CUDA: also list the N kernels with the most GPU time per call, ours and gsplat's "
+                             "(default %(default)s: none)")
 
 
 def run(args: argparse.Namespace) -> dict:

@@ -543,12 +543,12 @@ def _commit() -> str:
 # --------------------------------------------------------------------------------------------------
 # Command
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out-dir", default="bench-report", help="folder for report.json, report.md, pareto.png")
+    parser.add_argument("--out-dir", default="bench-report", help="folder for report.json, report.md, pareto.png (default %(default)s)")
     parser.add_argument("--quick", action="store_true", help="a small set on tiny sizes (under 2 min on a 2-core CPU)")
     parser.add_argument("--devices", default=None, help="comma list of devices to compare (default: --device)")
-    parser.add_argument("--kernels", default=",".join(KERNELS), help=f"comma list of {', '.join(KERNELS)}")
+    parser.add_argument("--kernels", default=",".join(KERNELS), help=f"comma list of {', '.join(KERNELS)} (default: all)")
     parser.add_argument("--sizes", default=None, help="comma list of scene sizes to keep (default: all of the mode)")
-    parser.add_argument("--dtypes", default="float32,float64", help="comma list of float32, float64")
+    parser.add_argument("--dtypes", default="float32,float64", help="comma list of float32, float64 (default: both)")
     parser.add_argument("--reps", type=int, default=None,
                         help="timed repetitions (default: 20 on CUDA, 5 on CPU, 3 with --quick)")
     parser.add_argument("--checkpoint", default=None, help="pretrained codec model (default: the shipped one)")

@@ -441,7 +441,8 @@ class LatentCodec(nn.Module):
         (:func:`_start_unused`): all its symbols are zero and nearly free, and it passes the top-down feature
         on unchanged, so the grown codec first codes and reconstructs nearly what the source did, and
         training then learns what the new latents add. (Zero symbols at a random prior instead cost kilobytes,
-        and their rate gradient through the shared top-down path wrecked a trained codec in session 10.)
+        and their rate gradient through the shared top-down path wrecked a trained codec in training run G,
+        2026-11-24.)
 
         Raises:
             InputError: the configs differ in anything but the finer levels.

@@ -214,18 +214,28 @@ def _save(fig, axes, path: pathlib.Path) -> None:
     save_figure(fig, path)
 
 
-def plot_comparison(columns: list, titles: list[str], path: pathlib.Path) -> None:
+def plot_comparison(columns: list, titles: list[str], path: pathlib.Path, inputs=None,
+                    input_title: str = "input") -> None:
     """Side-by-side images: ``columns[j]`` is [T,H,W,3] uint8 (one frame per target view, the rows), titled
-    ``titles[j]`` above its first row (e.g. ground truth, references, each lambda)."""
+    ``titles[j]`` above its first row (e.g. ground truth, references, each lambda). ``inputs`` [V,H,W,3] uint8,
+    when given, fills a first column of its own, one image per row titled ``input_title`` and its number (e.g. the
+    context photographs that a bitstream encodes). Each panel is shown at about its pixel size (130 dpi)."""
     views, height, width = columns[0].shape[:3]
-    fig, axes = pyplot().subplots(views, len(columns), squeeze=False,
-                                  figsize=(2.6 * len(columns), 2.6 * views * height / width + 0.4))
+    offset = 0 if inputs is None else 1
+    rows = max(views, 0 if inputs is None else len(inputs))
+    panel = max(width / 130, 1.6)  # inches: one image pixel per figure pixel, with room for a title
+    fig, axes = pyplot().subplots(rows, offset + len(columns), squeeze=False,
+                                  figsize=(panel * (offset + len(columns)), panel * rows * height / width + 0.5))
     for i, row_axes in enumerate(axes):
         for j, ax in enumerate(row_axes):
-            ax.imshow(columns[j][i])
             ax.set_axis_off()
-            if i == 0:
-                ax.set_title(titles[j], fontsize=8)
+            if j < offset:
+                frames, title = inputs, f"{input_title} {i + 1}"
+            else:
+                frames, title = columns[j - offset], titles[j - offset] if i == 0 else ""
+            if i < len(frames):
+                ax.imshow(frames[i])
+                ax.set_title(title, fontsize=8)
     save_figure(fig, path)
 
 

@@ -59,13 +59,21 @@ def measure(config: ModelConfig, device: torch.device, repeats: int = 3) -> dict
     return {"params": parameter_count(model), "forward_s": best, "peak_mb": peak}
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m codecsplat_warp.model.report``."""
     parser = argparse.ArgumentParser(prog="python -m codecsplat_warp.model.report", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto")
+    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default %(default)s)")
     parser.add_argument("--presets", nargs="*", default=["tiny", "re10k", "dl3dv"], choices=list(PRESETS),
-                        help="presets to measure (smallest first, so CPU peak-RSS rows stay meaningful)")
-    parser.add_argument("--repeats", type=int, default=3)
-    args = parser.parse_args(argv)
+                        help="presets to measure, smallest first so that CPU peak-RSS rows stay meaningful "
+                        "(default: %(default)s)")
+    parser.add_argument("--repeats", type=int, default=3,
+                        help="timed forward passes per preset, after one warm-up; the fastest is shown "
+                        "(default %(default)s)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
     device = resolve_device(args.device)
     print(f"device: {device}{' (' + torch.cuda.get_device_name(device) + ')' if device.type == 'cuda' else ''}")
     print(f"{'preset':8s} {'views':>5s} {'size':>9s} {'params':>10s} {'forward_s':>10s} {'peak_MB':>9s}")

@@ -57,7 +57,7 @@ class ModelConfig:
         codec_latent_channels: channels of each latent level, coarsest first; level l of L sits at stride
             ``codec_finest_stride * 2**(L-1-l)`` of the feature grid.
         codec_finest_stride: stride of the finest latent level on the feature grid, a power of two >= 2
-            (4: 1/8 of the image, the layout of every model file before session 10; 2: 1/4 of the image).
+            (4: 1/8 of the image, as in the shipped model; 2: 1/4 of the image, as in model dce2a7bfd3a0b5f0).
         lambda_channels: size of the rate embedding e_lambda.
         mono: pretrained monocular backbone in MVEnc's mono slot: ``"none"`` or a name of
             :data:`codecsplat_warp.nn.mono.MONO_BACKBONES` (``"vgg16"``: frozen ImageNet VGG16 to relu3_3).
