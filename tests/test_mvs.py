@@ -235,7 +235,7 @@ def test_cli_writes_depth_maps_that_read_back(tmp_path, capsys):
     index = json.loads((out / "depth.json").read_text())
     assert index["format"] == DEPTH_FORMAT and (index["width"], index["height"]) == (48, 40)
     assert index["config"]["num_planes"] == 16 and index["device"] == "cpu" and index["seconds"] > 0
-    assert summary["output"] == str(out) and len(index["frames"]) == 5
+    assert summary["scenes"][0]["output"] == str(out) and len(index["frames"]) == 5 and summary["views"] == 5
     maps = read_depth_maps(out)
     assert maps.depth.shape == (5, 40, 48) and maps.depth.dtype == torch.float32
     assert maps.frames == [f"images/{i:03d}.png" for i in range(5)]
@@ -259,6 +259,22 @@ def test_cli_writes_depth_maps_that_read_back(tmp_path, capsys):
                        MVSConfig(num_planes=16, num_sources=3))
     assert torch.equal(direct.mask, maps.mask)
     assert float((direct.depth - maps.depth).abs().max()) <= quantization_error(index["scale"]) * (1 + 1e-5)
+
+
+def test_cli_runs_several_scenes_and_keeps_finished_ones(tmp_path, capsys):
+    folders = [write_scene_folder(tmp_path / name, tiny_scene(seed=seed)) for name, seed in (("a", 0), ("b", 1))]
+    args = ["depth", *map(str, folders), "-o", str(tmp_path / "out"), "--device", "cpu", "--planes", "12",
+            "--sources", "3", "--json"]
+    assert main(args) == 0
+    first = json.loads(capsys.readouterr().out)
+    assert [pathlib.Path(r["output"]).name for r in first["scenes"]] == ["a", "b"] and first["views"] == 10
+    assert not any(r["resumed"] for r in first["scenes"])
+    for name in "ab":
+        assert read_depth_maps(tmp_path / "out" / name).depth.shape == (5, 40, 48)
+    assert main(args) == 0
+    assert all(r["resumed"] for r in json.loads(capsys.readouterr().out)["scenes"])
+    assert main([*args, "--planes", "13"]) == 0  # another config: computed again
+    assert not any(r["resumed"] for r in json.loads(capsys.readouterr().out)["scenes"])
 
 
 def test_cli_user_errors_exit_1(tmp_path, capsys):

@@ -35,7 +35,7 @@ from ..cameras import Cameras, rigid_inverse
 from ..checks import check_tensor, check_values
 from ..errors import InputError, MVSError
 from ..kernels import mvs as mvs_kernels
-from .geometry import intrinsics_vector, launch_by_rows
+from .primitives import launch_by_rows
 
 GRAY_WEIGHTS = (0.299, 0.587, 0.114)
 """RGB -> grey level weights (ITU-R BT.601 luma)."""
@@ -334,7 +334,7 @@ class _SweepInputs:
         cams64 = cameras.to(dtype=torch.float64)
         rel = cams64.relative_transforms(padded.to(cams64.device))
         to_kernel = lambda t: t.to(device=device, dtype=dtype).contiguous()  # noqa: E731
-        return _SweepInputs(gray=gray, intrinsics=to_kernel(intrinsics_vector(cams64)), rel=to_kernel(rel),
+        return _SweepInputs(gray=gray, intrinsics=to_kernel(cams64.pixel_intrinsics()), rel=to_kernel(rel),
                             back=to_kernel(rigid_inverse(rel)),
                             sources=padded.to(device=device, dtype=torch.int32).contiguous(),
                             count=sources.count.to(device=device, dtype=torch.int32).contiguous(),
