@@ -1,9 +1,9 @@
 """Multi-view stereo: a plane sweep with windowed NCC, refinement between planes, and a geometric consistency count.
 
 Conventions (``codecsplat_warp.cameras``): OpenCV axes, pixel centres at +0.5, depth = camera z. The sweep planes
-are fronto-parallel in the reference camera: the window pixel (x + i*step, y + j*step) on the plane of depth d
-is the camera point ``d * ray(x + i*step, y + j*step)``, so its position in a source view is the plane-induced
-homography of that pixel, formed here by moving the centre's source-frame point by i and j window steps.
+are fronto-parallel in the reference camera, the refinement also tries slanted ones: the window pixel
+(x + i*step, y + j*step) lies where its ray meets the plane through the centre pixel's point, so its position in a
+source view is the plane-induced homography of that pixel (:func:`source_ncc`).
 
 Array arguments (all scalar arrays so one kernel serves float32 and float64):
 
@@ -32,7 +32,6 @@ from .unproject import pixel_ray
 
 MAX_SOURCES = wp.constant(8)
 """Most source views per reference view (the per-plane costs are sorted in a local vector of this length)."""
-
 
 
 @wp.func

@@ -195,6 +195,19 @@ def test_float64_agrees_with_float32(device):
     assert torch.equal(single.sources.index, double.sources.index)
 
 
+def test_launches_of_several_views_give_the_same_depth(monkeypatch):
+    """CUDA sweeps ``views_per_launch`` views per launch; the same batching on the CPU changes nothing."""
+    from codecsplat_warp.ops import mvs
+
+    scene = tiny_scene()
+    one_by_one = mvs_depth(*as_input(scene), TINY)
+    monkeypatch.setattr(mvs, "_view_batches", lambda views, device, config: [(0, 2), (2, 3)])
+    done = []
+    batched = mvs_depth(*as_input(scene), TINY, progress=done.append)
+    assert done == [2, 5]
+    assert torch.equal(one_by_one.raw_depth, batched.raw_depth) and torch.equal(one_by_one.depth, batched.depth)
+
+
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU visible to torch")
 def test_cuda_agrees_with_cpu():

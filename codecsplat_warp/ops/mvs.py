@@ -3,21 +3,23 @@ geometric consistency filter (the Warp kernels are in :mod:`codecsplat_warp.kern
 
 For every view r (the *reference*):
 
-1. **Sources** (:func:`select_sources`): a grid of r's pixels at a few depths between its near and far is
-   projected into every other view; the fraction that lands inside is the *overlap*. Views with enough overlap,
+1. **Sources** (:func:`select_sources`): a grid of r's pixels at a few depths from its near to its far (uniform in
+   log depth) is projected into every other view; the fraction that lands inside is the *overlap*. Views with enough overlap,
    a triangulation angle at the scene's middle depth (geometric mean of near and far) within a useful range and
    optical axes not too far apart are candidates; the best ``num_sources`` by overlap times a preference for
    angles near ``good_triangulation_deg`` are r's sources.
 2. **Plane sweep**: ``num_planes`` fronto-parallel planes uniform in inverse depth from far to near. The cost of
    a plane is 1 - NCC of the grey-level window around the pixel (``2 * window_radius + 1`` samples a side,
-   ``window_step`` pixels apart) with the source image warped by the plane's homography (bilinear sampling),
-   aggregated over the sources as the mean of the best half (occlusion-robust). The winner plane is refined by
-   a finer sweep around it and a parabola fit in inverse depth.
+   ``window_step`` pixels apart, each weighted by its likeness to the centre pixel: ``support_contrast``) with the
+   source image warped by the plane's homography (bilinear sampling), aggregated over the sources as the mean of
+   the best half (occlusion-robust). The winner is refined by a finer sweep around it, with fronto-parallel and
+   slanted planes (``slant_degrees``), and a parabola fit in inverse depth.
 3. **Photometric confidence**: a depth is dropped where the window's grey-level standard deviation is below
    ``min_texture`` or the aggregated NCC of the winner is below ``min_ncc``.
 4. **Geometric consistency**: a depth is kept where at least ``min_consistent_views`` source views agree: the
    pixel unprojected at its depth, projected into the source, carried back with the source's depth there lands
-   within ``max_reprojection_px`` pixels of the pixel and within ``max_relative_depth`` of its depth.
+   within ``max_reprojection_px`` pixels of the pixel and within ``max_relative_depth`` of its depth. The kept
+   depth is the mean of the view's own and the agreeing views' depths.
 
 No gradients. The same kernels run on CPU (launches split by image rows over threads) and CUDA (launches split
 by views, ``views_per_launch`` at a time).
