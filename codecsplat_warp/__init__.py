@@ -10,7 +10,7 @@ pyproject.toml): :mod:`codecsplat_warp.kernels` (pure Warp), :mod:`~codecsplat_w
 :mod:`~codecsplat_warp.cameras` (conventions), :mod:`~codecsplat_warp.gaussians`, :mod:`~codecsplat_warp.nn` ->
 :mod:`~codecsplat_warp.ops` (differentiable Warp ops) -> :mod:`~codecsplat_warp.codec` (latents, entropy
 coding, bitstream) -> :mod:`~codecsplat_warp.model` (the network) -> data, metrics, export, baselines ->
-:mod:`~codecsplat_warp.eval` -> bench, demo, selfcheck -> :mod:`~codecsplat_warp.cli`.
+:mod:`~codecsplat_warp.eval` -> bench, demo, depth, selfcheck -> :mod:`~codecsplat_warp.cli`.
 """
 
 from .cameras import Cameras

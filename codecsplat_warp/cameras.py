@@ -143,6 +143,11 @@ class Cameras:
         return torch.stack([K[:, 0, 0] / self.width, K[:, 1, 1] / self.height,
                             K[:, 0, 2] / self.width, K[:, 1, 2] / self.height], dim=-1)
 
+    def pixel_intrinsics(self) -> torch.Tensor:
+        """[V,4] (fx, fy, cx, cy) in pixels, the form the Warp kernels take."""
+        K = self.K
+        return torch.stack([K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]], dim=-1)
+
     def relative_transforms(self, neighbours: torch.Tensor) -> torch.Tensor:
         """[V,M,4,4] transforms from reference camera r to source camera ``neighbours[r, m]``.
 

@@ -170,12 +170,17 @@ def _depth_parser(sub) -> None:
     from .ops.mvs import MVSConfig
 
     d = MVSConfig()
-    depth = sub.add_parser("depth", help="multi-view stereo depth of every view of a posed scene -> 16-bit PNG depth "
+    depth = sub.add_parser("depth", help="multi-view stereo depth of every view of posed scenes -> 16-bit PNG depth "
                            "maps, masks, previews and depth.json")
     _common(depth)
-    depth.add_argument("scene", help="scene folder or pose file (cameras.json, transforms.json, LLFF, COLMAP, ...) "
-                       "with at least 3 posed views")
-    depth.add_argument("-o", "--out", required=True, help="output folder (depth/, mask/, preview/, depth.json)")
+    depth.add_argument("scenes", nargs="+", metavar="SCENE",
+                       help="scene folder or pose file (cameras.json, transforms.json, LLFF, COLMAP, ...) with at least "
+                       "3 posed views; several: one run over all of them")
+    depth.add_argument("-o", "--out", required=True,
+                       help="output folder (depth/, mask/, preview/, depth.json); with several scenes, OUT/<scene "
+                       "folder name>/ each")
+    depth.add_argument("--restart", action="store_true",
+                       help="compute again a scene whose output already holds this run's depth.json (default: keep it)")
     depth.add_argument("--max-size", type=int, metavar="PX",
                        help="compute at the images resized so their long side is at most PX pixels (default: the "
                        "stored size)")
@@ -469,7 +474,7 @@ def _cmd_eval(args) -> int:
 
 
 def _cmd_depth(args) -> int:
-    from .depth import DepthRun, write_scene_depth
+    from .depth import DepthRun, finished_run, write_scene_depth
     from .ops.mvs import MVSConfig
 
     if args.max_size is not None and args.max_size < 16:
@@ -479,18 +484,48 @@ def _cmd_depth(args) -> int:
                        min_consistent_views=args.consistent_views, max_reprojection_px=args.max_reprojection,
                        max_relative_depth=args.max_relative_depth, allow_unmatched=args.allow_unmatched)
     device = _device(args)
-    result = write_scene_depth(DepthRun(scene=args.scene, out=args.out, config=config, max_size=args.max_size,
-                                        progress=not args.json), device)  # fmt: skip
-    views = len(result["frames"])
-    coverage = sum(frame["coverage"] for frame in result["frames"]) / views
-    lines = [f"depth maps of {args.scene} at {result['width']}x{result['height']} on {device} -> {args.out}/",
-             f"  {'views':<16s}{views:>10d}", f"  {'mean coverage':<16s}{coverage:>10.1%}",
-             f"  {'seconds':<16s}{result['seconds']:>10.2f}", f"  {'seconds / view':<16s}{result['seconds'] / views:>10.3f}"]
-    unmatched = [frame["file"] for frame in result["frames"] if not frame["sources"]]
-    if unmatched:
-        lines.append(f"  no usable source view, empty depth map: {', '.join(unmatched)}")
-    _emit(args, result, lines)
+    start = time.perf_counter()
+    runs = [DepthRun(scene=scene, out=out, config=config, max_size=args.max_size, progress=not args.json)
+            for scene, out in _depth_outputs(args.scenes, args.out)]  # fmt: skip
+    results = []
+    for run in runs:
+        done = None if args.restart else finished_run(run)
+        results.append(done or write_scene_depth(run, device))
+    seconds = time.perf_counter() - start
+    views = sum(len(r["frames"]) for r in results)
+    coverage = sum(f["coverage"] for r in results for f in r["frames"]) / views
+    summary = {"scenes": results, "views": views, "mean_coverage": coverage, "seconds": seconds,
+               "seconds_per_view": seconds / views, "device": str(device)}
+    lines = [f"{'scene':<28s}{'views':>6s}{'size':>10s}{'coverage':>10s}{'seconds':>9s}"]
+    for r in results:
+        scene_coverage = sum(f["coverage"] for f in r["frames"]) / len(r["frames"])
+        timing = "kept" if r["resumed"] else f"{r['seconds']:.2f}"
+        lines.append(f"{pathlib.Path(r['output']).name:<28s}{len(r['frames']):>6d}{r['width']:>5d}x{r['height']:<4d}"
+                     f"{scene_coverage:>10.1%}{timing:>9s}")
+        unmatched = [f["file"] for f in r["frames"] if not f["sources"]]
+        if unmatched:
+            lines.append(f"  no usable source view, empty depth map: {', '.join(unmatched)}")
+    lines += [f"{'all':<28s}{views:>6d}{'':>10s}{coverage:>10.1%}{seconds:>9.2f}",
+              f"{seconds / views:.3f} s per view on {device}; wrote {args.out}/"]
+    _emit(args, summary, lines)
     return EXIT_OK
+
+
+def _depth_outputs(scenes: list[str], out: str) -> list[tuple[str, str]]:
+    """(scene, output folder) of each scene: ``out`` itself for one scene, ``out/<scene folder name>`` for several."""
+    if len(scenes) == 1:
+        return [(scenes[0], out)]
+    names = [_scene_folder_name(scene) for scene in scenes]
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise UsageError(f"several scenes share the folder name {', '.join(repeated)}: their outputs would collide")
+    return [(scene, str(pathlib.Path(out) / name)) for scene, name in zip(scenes, names)]
+
+
+def _scene_folder_name(scene: str) -> str:
+    """The name of a scene's folder (of the pose file's folder when given a file)."""
+    path = pathlib.Path(scene).resolve()
+    return path.parent.name if path.is_file() else path.name
 
 
 def _cmd_selfcheck(args) -> int:

@@ -1,9 +1,9 @@
 """Multi-view stereo: a plane sweep with windowed NCC, refinement between planes, and a geometric consistency count.
 
 Conventions (``codecsplat_warp.cameras``): OpenCV axes, pixel centres at +0.5, depth = camera z. The sweep planes
-are fronto-parallel in the reference camera: the window pixel (x + i*step, y + j*step) on the plane of depth d
-is the camera point ``d * ray(x + i*step, y + j*step)``, so its position in a source view is the plane-induced
-homography of that pixel, formed here by moving the centre's source-frame point by i and j window steps.
+are fronto-parallel in the reference camera, the refinement also tries slanted ones: the window pixel
+(x + i*step, y + j*step) lies where its ray meets the plane through the centre pixel's point, so its position in a
+source view is the plane-induced homography of that pixel (:func:`source_ncc`).
 
 Array arguments (all scalar arrays so one kernel serves float32 and float64):
 
@@ -32,7 +32,6 @@ from .unproject import pixel_ray
 
 MAX_SOURCES = wp.constant(8)
 """Most source views per reference view (the per-plane costs are sorted in a local vector of this length)."""
-
 
 
 @wp.func
@@ -67,6 +66,12 @@ def sample_bilinear(gray: wp.array(dtype=Any, ndim=3), v: int, u: Any, w: Any):
     top = (one - ax) * gray[v, y0, x0] + ax * gray[v, y0, x1]
     bottom = (one - ax) * gray[v, y1, x0] + ax * gray[v, y1, x1]
     return (one - ay) * top + ay * bottom
+
+
+@wp.func
+def project(intrinsics: wp.array(dtype=Any, ndim=2), v: int, p: Any):
+    """Image point (u, w) of camera-frame point p (z > 0) in view v."""
+    return intrinsics[v, 0] * p[0] / p[2] + intrinsics[v, 2], intrinsics[v, 1] * p[1] / p[2] + intrinsics[v, 3]
 
 
 @wp.func
@@ -155,8 +160,8 @@ def source_ncc(
     height = gray.shape[1]
     valid = int(0)
     if p[2] > zero and facing > type(d)(0.1) * wp.length(ray):  # plane at most ~84 deg from facing the pixel
-        valid = int(inside_image(intrinsics[s, 0] * p[0] / p[2] + intrinsics[s, 2],
-                                 intrinsics[s, 1] * p[1] / p[2] + intrinsics[s, 3], width, height))
+        u, w = project(intrinsics, s, p)
+        valid = int(inside_image(u, w, width, height))
     centre = gray_at(gray, r, x, y)
     src_sum = zero
     src_squares = zero
@@ -167,8 +172,8 @@ def source_ncc(
                 along = facing + nx * type(d)(i) + ny * type(d)(j)
                 q = (a + bx * type(d)(i) + by * type(d)(j)) * (d * facing / wp.max(along, type(d)(1.0e-6))) + origin
                 if q[2] > zero and along > type(d)(0.5) * facing:
-                    g = sample_bilinear(gray, s, intrinsics[s, 0] * q[0] / q[2] + intrinsics[s, 2],
-                                        intrinsics[s, 1] * q[1] / q[2] + intrinsics[s, 3])
+                    qu, qw = project(intrinsics, s, q)
+                    g = sample_bilinear(gray, s, qu, qw)
                 else:
                     valid = 0
                     g = zero
@@ -382,8 +387,7 @@ def consistent_views(
             p = to_source_frame(rel, r, m, point)
             if p[2] <= zero:
                 continue
-            u = intrinsics[s, 0] * p[0] / p[2] + intrinsics[s, 2]
-            w = intrinsics[s, 1] * p[1] / p[2] + intrinsics[s, 3]
+            u, w = project(intrinsics, s, p)
             if not inside_image(u, w, width, height):
                 continue
             ds = sample_depth(depth, s, u, w)
@@ -394,8 +398,9 @@ def consistent_views(
             q = to_source_frame(back, r, m, seen)
             if q[2] <= zero:
                 continue
-            du = intrinsics[r, 0] * q[0] / q[2] + intrinsics[r, 2] - (type(d)(x) + type(d)(0.5))
-            dv = intrinsics[r, 1] * q[1] / q[2] + intrinsics[r, 3] - (type(d)(y) + type(d)(0.5))
+            back_u, back_w = project(intrinsics, r, q)
+            du = back_u - (type(d)(x) + type(d)(0.5))
+            dv = back_w - (type(d)(y) + type(d)(0.5))
             if du * du + dv * dv < tolerance[0] * tolerance[0] and wp.abs(q[2] - d) < tolerance[1] * d:
                 n += 1
                 total += q[2]

@@ -29,11 +29,12 @@ def test_front_door_names_are_the_defining_objects():
 
 
 def test_ops_exports_the_public_ops():
-    from codecsplat_warp.ops import geometry, raster
+    from codecsplat_warp.ops import geometry, mvs, raster
 
+    modules = (geometry, mvs, raster)
     for name in ops.__all__:
-        assert getattr(ops, name) is getattr(geometry, name, None) or getattr(ops, name) is getattr(raster, name)
-    public = {n for m in (geometry, raster) for n, v in vars(m).items()
+        assert any(getattr(ops, name) is getattr(module, name, None) for module in modules), name
+    public = {n for m in modules for n, v in vars(m).items()
               if inspect.isfunction(v) and not n.startswith("_") and getattr(v, "__module__", None) == m.__name__}
     assert public <= set(ops.__all__), f"public ops missing from codecsplat_warp.ops: {public - set(ops.__all__)}"
 

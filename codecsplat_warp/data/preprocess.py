@@ -61,24 +61,29 @@ def resize_and_crop(images: torch.Tensor, cameras: Cameras, width: int, height: 
     if (in_w, in_h) != (cameras.width, cameras.height):
         raise DataError(f"images are {in_w}x{in_h} but the cameras are {cameras.width}x{cameras.height}")
     scaled_w, scaled_h, left, top = crop_geometry(in_w, in_h, width, height)
-    resized = torch.stack([_resize_lanczos(image, scaled_w, scaled_h) for image in images])
+    resized = torch.stack([resize_image(image, scaled_w, scaled_h) for image in images])
     cropped = resized[:, :, top:top + height, left:left + width].contiguous()
     return cropped, protocol_cameras(cameras, width, height)
 
 
-def resize_to_max_side(images: torch.Tensor, cameras: Cameras, max_side: int) -> tuple[torch.Tensor, Cameras]:
-    """Resize uint8 [V,3,H,W] images (Lanczos) so that the long side is at most ``max_side`` pixels, aspect kept
-    (sides rounded), covering the whole image (no crop); unchanged when it already is. Returns the images and
-    the cameras rescaled to them."""
+def max_side_size(width: int, height: int, max_side: int) -> tuple[int, int]:
+    """(width, height) of an image resized so that its long side is at most ``max_side`` pixels, aspect kept
+    (sides rounded); the size itself when it already is."""
     if max_side < 1:
         raise DataError(f"max_side must be >= 1, got {max_side}")
-    in_h, in_w = images.shape[-2:]
-    if max(in_w, in_h) <= max_side:
+    if max(width, height) <= max_side:
+        return width, height
+    scale = max_side / max(width, height)
+    return max(1, round(width * scale)), max(1, round(height * scale))
+
+
+def resize_to_max_side(images: torch.Tensor, cameras: Cameras, max_side: int) -> tuple[torch.Tensor, Cameras]:
+    """uint8 [V,3,H,W] images resized (:func:`max_side_size`, :func:`resize_image`) so that the long side is at most
+    ``max_side`` pixels, covering the whole image, and the cameras rescaled to them."""
+    width, height = max_side_size(images.shape[-1], images.shape[-2], max_side)
+    if (width, height) == tuple(images.shape[-1:-3:-1]):
         return images, cameras
-    scale = max_side / max(in_w, in_h)
-    width, height = max(1, round(in_w * scale)), max(1, round(in_h * scale))
-    resized = torch.stack([_resize_lanczos(image, width, height) for image in images])
-    return resized, cameras.rescaled(width, height)
+    return torch.stack([resize_image(image, width, height) for image in images]), cameras.rescaled(width, height)
 
 
 def protocol_cameras(cameras: Cameras, width: int, height: int) -> Cameras:
@@ -107,7 +112,8 @@ def preprocess_scene(scene: Scene, config: DatasetConfig | str, frames=None, use
         cameras = cameras.with_depth_range(config.near, config.far)
     return replace(scene.select(frames), images=images, cameras=cameras)
 
-def _resize_lanczos(image: torch.Tensor, width: int, height: int) -> torch.Tensor:
+def resize_image(image: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """uint8 [3,H,W] image resized to ``width`` x ``height`` (Lanczos; the whole image, no crop)."""
     if tuple(image.shape[1:]) == (height, width):
         return image
     pil = Image.fromarray(image.permute(1, 2, 0).numpy())

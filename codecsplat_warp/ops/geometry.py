@@ -8,7 +8,6 @@ float32), and follow :mod:`codecsplat_warp.cameras` conventions. Camera paramete
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import torch
@@ -19,7 +18,7 @@ from ..device import launch, warp_scope
 from ..errors import DeviceMismatchError, InputError
 from ..kernels import reproject as reproject_kernels
 from ..kernels import unproject as unproject_kernels
-from .primitives import row_chunks, run_concurrently
+from .primitives import PER_PIECE, launch_by_rows
 
 _LOW_PRECISION = (torch.float16, torch.bfloat16)
 _ACCEPTED = (torch.float32, torch.float64, torch.float16, torch.bfloat16)
@@ -177,7 +176,7 @@ class _ReprojectAverage(torch.autograd.Function):
         avg = torch.zeros_like(feat)
         count = torch.empty(V, H, W, dtype=torch.int32, device=feat.device)
         launch_by_rows(reproject_kernels.reproject_average_forward, (V, H, W),
-                        [feat, depth, intrinsics, rel, neighbours, avg, count], feat.device)
+                       [feat, depth, intrinsics, rel, neighbours, avg, count], feat.device)
         ctx.save_for_backward(feat, depth, intrinsics, rel, neighbours, count)
         ctx.mark_non_differentiable(count)
         return avg, count
@@ -189,8 +188,8 @@ class _ReprojectAverage(torch.autograd.Function):
         grad_depth = torch.empty_like(depth)
         V, _, H, W = feat.shape
         grad_feat = launch_by_rows(reproject_kernels.reproject_average_backward, (V, H, W),
-                                    [grad_avg, feat, depth, intrinsics, rel, neighbours, count, _PER_PIECE, grad_depth],
-                                    feat.device, scatter_like=feat)  # fmt: skip
+                                   [grad_avg, feat, depth, intrinsics, rel, neighbours, count, PER_PIECE, grad_depth],
+                                   feat.device, scatter_like=feat)  # fmt: skip
         return grad_feat, grad_depth, None, None, None
 
 
@@ -202,7 +201,7 @@ class _CostVolume(torch.autograd.Function):
         cost = torch.empty(V, D, H, W, dtype=feat.dtype, device=feat.device)
         count = torch.empty(V, D, H, W, dtype=torch.int32, device=feat.device)
         launch_by_rows(reproject_kernels.cost_volume_forward, (V, D, H, W),
-                        [feat, candidates, intrinsics, rel, neighbours, cost, count], feat.device)
+                       [feat, candidates, intrinsics, rel, neighbours, cost, count], feat.device)
         ctx.save_for_backward(feat, candidates, intrinsics, rel, neighbours, count)
         return cost
 
@@ -211,8 +210,8 @@ class _CostVolume(torch.autograd.Function):
         feat, candidates, intrinsics, rel, neighbours, count = ctx.saved_tensors
         grad_cost = grad_cost.contiguous()
         grad_feat = launch_by_rows(reproject_kernels.cost_volume_backward, count.shape,
-                                    [grad_cost, feat, candidates, intrinsics, rel, neighbours, count, _PER_PIECE],
-                                    feat.device, scatter_like=feat)  # fmt: skip
+                                   [grad_cost, feat, candidates, intrinsics, rel, neighbours, count, PER_PIECE],
+                                   feat.device, scatter_like=feat)  # fmt: skip
         return grad_feat, None, None, None, None
 
 
@@ -260,47 +259,10 @@ def _kernel_cameras(cameras: Cameras, like: torch.Tensor, width: int, height: in
             index = _checked_neighbours(neighbours, cams.num_views, like.device)
         rel = cameras.to(dtype=torch.float64).relative_transforms(index).to(like.dtype).contiguous()
         # the given neighbours tensor is kept alive with the entry, so its id cannot be reused while cached
-        return _KernelCameras(intrinsics_vector(cams), cams.c2w.contiguous(), rel, index), neighbours
+        return _KernelCameras(cams.pixel_intrinsics().contiguous(), cams.c2w.contiguous(), rel, index), neighbours
 
     with torch.autocast(like.device.type, enabled=False):  # camera algebra in full precision, cached as such
         return cameras.memoized(key, build)[0]
-
-
-def intrinsics_vector(cameras: Cameras) -> torch.Tensor:
-    """[V,4] (fx, fy, cx, cy) in pixels of the cameras' grid."""
-    K = cameras.K
-    return torch.stack([K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]], dim=-1).contiguous()
-
-
-_PER_PIECE = object()
-"""Stands, in the arguments given to :func:`launch_by_rows`, for the gradient buffer of each row piece."""
-
-
-def launch_by_rows(kernel, dims: tuple[int, ...], args: list, device: torch.device,
-                    scatter_like: torch.Tensor | None = None) -> torch.Tensor | None:  # fmt: skip
-    """Launch a row-parallel kernel over ``dims = (*leading, H, W)`` in pieces of image rows (:func:`row_chunks`:
-    one piece on CUDA, one per CPU thread on the CPU, run concurrently), each piece with the kernel arguments
-    ``args`` followed by its first row (the kernel's last argument; its launch covers ``(*leading, rows, W)``).
-
-    A backward kernel scatters (atomic adds) into a gradient buffer at places other pieces write too: given
-    ``scatter_like``, each piece gets its own zeroed buffer of that tensor's shape and dtype where :data:`_PER_PIECE`
-    stands in ``args``, and the buffers' sum (into the first piece's) is returned; None without ``scatter_like``.
-    """
-    *leading, height, width = dims
-    chunks = row_chunks(height, device)
-    buffers = [None] * len(chunks) if scatter_like is None else [torch.zeros_like(scatter_like) for _ in chunks]
-    with warp_scope(device) as wdev:
-        run_concurrently([
-            functools.partial(launch, kernel, (*leading, rows, width),
-                              [buffer if arg is _PER_PIECE else arg for arg in args] + [row0], wdev)  # fmt: skip
-            for (row0, rows), buffer in zip(chunks, buffers)
-        ])
-    if scatter_like is None:
-        return None
-    total = buffers[0]
-    for buffer in buffers[1:]:
-        total += buffer
-    return total
 
 
 def _checked_neighbours(neighbours, num_views: int, device: torch.device) -> torch.Tensor:

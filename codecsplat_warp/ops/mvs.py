@@ -3,21 +3,23 @@ geometric consistency filter (the Warp kernels are in :mod:`codecsplat_warp.kern
 
 For every view r (the *reference*):
 
-1. **Sources** (:func:`select_sources`): a grid of r's pixels at a few depths between its near and far is
-   projected into every other view; the fraction that lands inside is the *overlap*. Views with enough overlap,
+1. **Sources** (:func:`select_sources`): a grid of r's pixels at a few depths from its near to its far (uniform in
+   log depth) is projected into every other view; the fraction that lands inside is the *overlap*. Views with enough overlap,
    a triangulation angle at the scene's middle depth (geometric mean of near and far) within a useful range and
    optical axes not too far apart are candidates; the best ``num_sources`` by overlap times a preference for
    angles near ``good_triangulation_deg`` are r's sources.
 2. **Plane sweep**: ``num_planes`` fronto-parallel planes uniform in inverse depth from far to near. The cost of
    a plane is 1 - NCC of the grey-level window around the pixel (``2 * window_radius + 1`` samples a side,
-   ``window_step`` pixels apart) with the source image warped by the plane's homography (bilinear sampling),
-   aggregated over the sources as the mean of the best half (occlusion-robust). The winner plane is refined by
-   a finer sweep around it and a parabola fit in inverse depth.
+   ``window_step`` pixels apart, each weighted by its likeness to the centre pixel: ``support_contrast``) with the
+   source image warped by the plane's homography (bilinear sampling), aggregated over the sources as the mean of
+   the best half (occlusion-robust). The winner is refined by a finer sweep around it, with fronto-parallel and
+   slanted planes (``slant_degrees``), and a parabola fit in inverse depth.
 3. **Photometric confidence**: a depth is dropped where the window's grey-level standard deviation is below
    ``min_texture`` or the aggregated NCC of the winner is below ``min_ncc``.
 4. **Geometric consistency**: a depth is kept where at least ``min_consistent_views`` source views agree: the
    pixel unprojected at its depth, projected into the source, carried back with the source's depth there lands
-   within ``max_reprojection_px`` pixels of the pixel and within ``max_relative_depth`` of its depth.
+   within ``max_reprojection_px`` pixels of the pixel and within ``max_relative_depth`` of its depth. The kept
+   depth is the mean of the view's own and the agreeing views' depths.
 
 No gradients. The same kernels run on CPU (launches split by image rows over threads) and CUDA (launches split
 by views, ``views_per_launch`` at a time).
@@ -35,7 +37,7 @@ from ..cameras import Cameras, rigid_inverse
 from ..checks import check_tensor, check_values
 from ..errors import InputError, MVSError
 from ..kernels import mvs as mvs_kernels
-from .geometry import intrinsics_vector, launch_by_rows
+from .primitives import launch_by_rows
 
 GRAY_WEIGHTS = (0.299, 0.587, 0.114)
 """RGB -> grey level weights (ITU-R BT.601 luma)."""
@@ -334,7 +336,7 @@ class _SweepInputs:
         cams64 = cameras.to(dtype=torch.float64)
         rel = cams64.relative_transforms(padded.to(cams64.device))
         to_kernel = lambda t: t.to(device=device, dtype=dtype).contiguous()  # noqa: E731
-        return _SweepInputs(gray=gray, intrinsics=to_kernel(intrinsics_vector(cams64)), rel=to_kernel(rel),
+        return _SweepInputs(gray=gray, intrinsics=to_kernel(cams64.pixel_intrinsics()), rel=to_kernel(rel),
                             back=to_kernel(rigid_inverse(rel)),
                             sources=padded.to(device=device, dtype=torch.int32).contiguous(),
                             count=sources.count.to(device=device, dtype=torch.int32).contiguous(),

@@ -3,17 +3,20 @@
 :func:`radix_sort_pairs` and :func:`inclusive_scan` call Warp's native sort and scan on the tensors' memory (no
 ``wp.array`` wrapping); on CUDA they run on Warp's current stream, so call them inside
 :func:`~codecsplat_warp.device.warp_scope`. :func:`row_chunks` and :func:`run_concurrently` split a CPU launch over
-image rows and run the pieces on a shared thread pool (a Warp CPU launch runs on one thread and releases the GIL).
+image rows and run the pieces on a shared thread pool (a Warp CPU launch runs on one thread and releases the GIL);
+:func:`launch_by_rows` launches a row-parallel kernel that way.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 from typing import Sequence
 
 import torch
 from warp._src import context as warp_context  # the native sort and scan entry points
 
+from ..device import launch, warp_scope
 from ..errors import InputError
 
 
@@ -95,3 +98,33 @@ def run_concurrently(tasks: Sequence) -> None:
     for future in futures:
         future.result()
 
+
+PER_PIECE = object()
+"""Stands, in the arguments given to :func:`launch_by_rows`, for the gradient buffer of each row piece."""
+
+
+def launch_by_rows(kernel, dims: tuple[int, ...], args: list, device: torch.device,
+                    scatter_like: torch.Tensor | None = None) -> torch.Tensor | None:  # fmt: skip
+    """Launch a row-parallel kernel over ``dims = (*leading, H, W)`` in pieces of image rows (:func:`row_chunks`:
+    one piece on CUDA, one per CPU thread on the CPU, run concurrently), each piece with the kernel arguments
+    ``args`` followed by its first row (the kernel's last argument; its launch covers ``(*leading, rows, W)``).
+
+    A backward kernel scatters (atomic adds) into a gradient buffer at places other pieces write too: given
+    ``scatter_like``, each piece gets its own zeroed buffer of that tensor's shape and dtype where :data:`PER_PIECE`
+    stands in ``args``, and the buffers' sum (into the first piece's) is returned; None without ``scatter_like``.
+    """
+    *leading, height, width = dims
+    chunks = row_chunks(height, device)
+    buffers = [None] * len(chunks) if scatter_like is None else [torch.zeros_like(scatter_like) for _ in chunks]
+    with warp_scope(device) as wdev:
+        run_concurrently([
+            functools.partial(launch, kernel, (*leading, rows, width),
+                              [buffer if arg is PER_PIECE else arg for arg in args] + [row0], wdev)  # fmt: skip
+            for (row0, rows), buffer in zip(chunks, buffers)
+        ])
+    if scatter_like is None:
+        return None
+    total = buffers[0]
+    for buffer in buffers[1:]:
+        total += buffer
+    return total
