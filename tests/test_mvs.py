@@ -92,6 +92,20 @@ def test_kept_depths_are_within_one_percent(scene, result):
     assert float((error < 0.01).float().mean()) >= 0.90, float((error < 0.01).float().mean())
 
 
+def test_no_depth_is_kept_outside_the_swept_range(scene):
+    """Surfaces beyond a view's far bound (cut to the middle of the room's depths here) get no depth, even where the
+    refinement or the fusion of agreeing views would step past the last plane; the writer relies on it (its 16-bit
+    scale ends at far)."""
+    images, cameras = as_input(scene)
+    far = scene.depth.flatten(1).median(dim=1).values.to(cameras.dtype)
+    cut = Cameras(K=cameras.K, w2c=cameras.w2c, near=cameras.near, far=far, width=cameras.width, height=cameras.height)
+    out = mvs_depth(images, cut, CONFIG)
+    assert bool(out.mask.any())
+    kept = out.depth.masked_fill(~out.mask, float("nan"))
+    assert bool((kept.nan_to_num(0.0) <= far[:, None, None]).all())
+    assert bool((kept.nan_to_num(float("inf")) >= cut.near[:, None, None]).all())
+
+
 def test_textured_surfaces_are_covered(scene, result):
     textured = textured_pixels(scene.images.float() / 255)
     assert textured.float().mean() > 0.5  # the scene is mostly textured: the measure is about matching

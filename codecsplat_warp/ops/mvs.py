@@ -227,10 +227,18 @@ def mvs_depth(images: torch.Tensor, cameras: Cameras, config: MVSConfig = MVSCon
         confident = (raw_depth > 0) & (ncc >= config.min_ncc) & (texture >= config.min_texture)
         photometric = torch.where(confident, raw_depth, torch.zeros_like(raw_depth))
         agree, fused = _consistency(grid, photometric, config)
-        mask = confident & (agree >= config.min_consistent_views)
+        mask = confident & (agree >= config.min_consistent_views) & _in_sweep_range(fused, cameras)
         depth = torch.where(mask, fused, torch.zeros_like(raw_depth))
     return MVSDepth(depth=depth, mask=mask, sources=sources, ncc=ncc, texture=texture, raw_depth=raw_depth,
                     consistent_views=agree)
+
+
+def _in_sweep_range(depth: torch.Tensor, cameras: Cameras) -> torch.Tensor:
+    """bool [V,H,W]: ``depth`` [V,H,W] within its view's [near, far], the range the sweep tested (refinement and the
+    fusion of agreeing views can step past its ends, where no plane vouches for the depth)."""
+    near = cameras.near.to(depth.dtype)[:, None, None]
+    far = cameras.far.to(depth.dtype)[:, None, None]
+    return (depth >= near) & (depth <= far)
 
 
 def select_sources(cameras: Cameras, config: MVSConfig = MVSConfig()) -> SourceViews:
