@@ -12,14 +12,14 @@ import torch
 from PIL import Image
 
 from codecsplat_warp.data import (FORMATS, detect_formats, load_7scenes, load_colmap, load_kitti, load_llff,
-                                  load_middlebury, load_nerf, load_neus, load_scene, load_scene_json)
+                                  load_middlebury, load_nerf, load_neus, load_scene, load_scene_json, load_strecha)
 from codecsplat_warp.data.colmap import CAMERA_MODELS, read_model
 from codecsplat_warp.errors import DataError
 
 C2W_TOLERANCE = 1e-4
 INTRINSICS_RELATIVE_TOLERANCE = 1e-3
 NATIVE_LOADERS = {"llff": load_llff, "nerf": load_nerf, "neus": load_neus, "middlebury": load_middlebury,
-                  "colmap": load_colmap, "kitti": load_kitti, "7scenes": load_7scenes}
+                  "colmap": load_colmap, "kitti": load_kitti, "7scenes": load_7scenes, "strecha": load_strecha}
 
 
 def _scene_dirs(root: pathlib.Path) -> list[pathlib.Path]:
@@ -95,7 +95,8 @@ def test_load_scene_accepts_pose_files(data_root):
                             (data_root / "dtu_scan37", "cameras_sphere.npz"), (data_root / "middlebury_dino", "dino_par.txt"),
                             (data_root / "other_kitti00", "poses.txt"),
                             (data_root / "other_7scenes_redkitchen", "camera-intrinsics.txt"),
-                            (data_root / "other_dancer", "transforms.json"), (data_root / "llff_room", "cameras.json")):
+                            (data_root / "other_dancer", "transforms.json"), (data_root / "llff_room", "cameras.json"),
+                            (data_root / "strecha_entry_p10", "gt_dense_cameras")):
         scene = load_scene(scene_dir / file)
         assert scene.key == scene_dir.name and scene.num_views == len(_reference_cameras(scene_dir))
     scene = load_scene(data_root / "llff_room" / "sparse" / "0")
@@ -358,6 +359,62 @@ def test_7scenes_loader_and_errors(tmp_path):
     file.write_text("7 0 4\n0 6.5 3\n0 0 2\n")
     with pytest.raises(DataError, match=r"camera-intrinsics\.txt: expected a pinhole matrix"):
         load_7scenes(file)
+
+
+def _strecha(folder: pathlib.Path, frames: int) -> pathlib.Path:
+    """A Strecha scene of ``frames`` views: camera k at C = (k, 0, -5) turned 90 degrees about the world z axis."""
+    names = [f"{i:04d}.jpg" for i in range(frames)]
+    _tiny_jpegs(folder / "images", names)
+    (folder / "gt_dense_cameras").mkdir()
+    R = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]  # columns: camera x, y, z axes in world coordinates
+    for i, name in enumerate(names):
+        lines = [[7.0, 0, 4.0], [0, 6.5, 3.0], [0, 0, 1], [0.1, 0, 0], *R, [float(i), 0, -5.0], [8, 6]]
+        text = "".join(" ".join(str(v) for v in line) + " \n" for line in lines)
+        (folder / "gt_dense_cameras" / f"{name}.camera").write_text(text)
+    return folder / "gt_dense_cameras"
+
+
+def test_strecha_loader(tmp_path):
+    """Strecha .camera files: K, distortion (kept aside), R camera-to-world (OpenCV axes), camera centre, w h."""
+    cameras = _strecha(tmp_path / "scene", 12)
+    assert list(detect_formats(cameras.parent)) == ["strecha"] and load_scene(cameras.parent).source.startswith("strecha:")
+    scene = load_strecha(cameras, near=0.5, far=20.0)
+    assert scene.key == "scene" and scene.frame_names == [f"images/{i:04d}.jpg" for i in range(12)]
+    np.testing.assert_array_equal(scene.cameras.K[3].numpy(), [[7.0, 0, 4.0], [0, 6.5, 3.0], [0, 0, 1]])
+    np.testing.assert_array_equal(scene.cameras.c2w[3].numpy(), [[0, -1, 0, 3], [1, 0, 0, 0], [0, 0, 1, -5], [0, 0, 0, 1]])
+    assert scene.metadata["distortion"][0] == [0.1, 0, 0]
+    assert (scene.cameras.width, scene.cameras.height) == (8, 6) and scene.decoded_images([11]).shape == (1, 3, 6, 8)
+    (cameras / "0002.jpg.camera").rename(cameras / "2.jpg.camera")  # natural order: 2 between 0001 and 0003
+    assert load_strecha(cameras).frame_names[1:4] == ["images/0001.jpg", "images/2.jpg", "images/0003.jpg"]
+
+
+@pytest.mark.parametrize("case, expected", [
+    ("short", r"0001\.jpg\.camera: expected 9 lines \(K, distortion, R, camera centre, w h\), got 8"),
+    ("count", r"0001\.jpg\.camera: line 8 \(camera centre\): expected 3 numbers, got 2 fields"),
+    ("text", r"0001\.jpg\.camera: line 6 \(R\): not a number in \['1', 'x', '0'\]"),
+    ("nan", r"0001\.jpg\.camera: line 4 \(distortion\): holds NaN or Inf"),
+    ("skew", r"0001\.jpg\.camera: lines 1-3 \(K\): expected a pinhole matrix"),
+    ("size", r"0001\.jpg\.camera: line 9 \(w h\): expected two positive whole numbers, got \[8\.5, 6\.0\]"),
+    ("mixed", r"gt_dense_cameras: frame 1 is 9x6 but frame 0 is 8x6"),
+    ("rotation", r"gt_dense_cameras: view 1: w2c rotation is not a proper orthonormal rotation"),
+    ("empty", r"gt_dense_cameras: no \*\.camera file"),
+])
+def test_strecha_errors(tmp_path, case, expected):
+    cameras = _strecha(tmp_path / "scene", 2)
+    file = cameras / "0001.jpg.camera"
+    lines = file.read_text().splitlines()
+    edits = {"short": (8, None), "count": (7, "1 0"), "text": (5, "1 x 0"), "nan": (3, "0 nan 0"),
+             "skew": (0, "7 0.5 4"), "size": (8, "8.5 6"), "mixed": (8, "9 6"), "rotation": (4, "0 -2 0")}
+    if case == "empty":
+        for camera_file in cameras.iterdir():
+            camera_file.unlink()
+    elif edits[case][1] is None:
+        file.write_text("\n".join(lines[:edits[case][0]]))
+    else:
+        lines[edits[case][0]] = edits[case][1]
+        file.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError, match=expected):
+        load_strecha(cameras)
 
 
 def test_middlebury_and_neus_errors(tmp_path):

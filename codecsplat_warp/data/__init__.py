@@ -26,6 +26,7 @@ from .procedural import ProceduralConfig, procedural_scene, render
 from .scene import EncodedImages, Scene
 from .scene_json import load_scene_json
 from .sevenscenes import load_7scenes
+from .strecha import load_strecha
 from .views import (
     BoundedSamplerConfig, ViewSelection, load_evaluation_index, sample_bounded_views, split_context_targets,
 )
@@ -35,6 +36,6 @@ __all__ = [
     "ProceduralConfig", "ProceduralDataset", "Scene", "SceneDataset", "ViewSelection", "detect_formats",
     "is_colmap_model", "load_7scenes", "load_chunk_scene", "load_colmap", "load_evaluation_index", "load_index",
     "load_kitti", "load_llff", "load_middlebury", "load_nerf", "load_neus", "load_scene", "load_scene_json",
-    "make_dataloader", "preprocess_scene", "procedural_scene", "read_chunk", "read_depth_maps", "read_model",
-    "render", "resize_and_crop", "sample_bounded_views", "split_context_targets", "write_chunks",
+    "load_strecha", "make_dataloader", "preprocess_scene", "procedural_scene", "read_chunk", "read_depth_maps",
+    "read_model", "render", "resize_and_crop", "sample_bounded_views", "split_context_targets", "write_chunks",
 ]

@@ -13,6 +13,7 @@ format                    detected by
 ``colmap``                ``sparse/0/``, ``sparse/`` or the folder itself holding cameras/images .txt/.bin
 ``kitti``                 ``poses.txt`` next to ``calib.txt`` (KITTI odometry)
 ``7scenes``               ``camera-intrinsics.txt`` next to ``poses/*.pose.txt`` (Microsoft 7-Scenes)
+``strecha``               ``gt_dense_cameras/*.camera`` (Strecha et al. dense multi-view stereo benchmark)
 ========================  =====================================================================
 """
 
@@ -31,13 +32,15 @@ from .neus import load_neus
 from .scene import Scene, name_list
 from .scene_json import is_scene_json, load_scene_json
 from .sevenscenes import load_7scenes, pose_files_of
+from .strecha import CAMERA_FOLDER, is_strecha_folder, load_strecha
 
-FORMATS = ("scene-json", "llff", "nerf", "neus", "middlebury", "colmap", "kitti", "7scenes")
+FORMATS = ("scene-json", "llff", "nerf", "neus", "middlebury", "colmap", "kitti", "7scenes", "strecha")
 """Format names accepted by :func:`load_scene`'s ``format`` argument."""
 
 _LOADERS = {
     "scene-json": load_scene_json, "llff": load_llff, "nerf": load_nerf, "neus": load_neus,
     "middlebury": load_middlebury, "colmap": load_colmap, "kitti": load_kitti, "7scenes": load_7scenes,
+    "strecha": load_strecha,
 }
 
 
@@ -47,7 +50,8 @@ def load_scene(path, format: str | None = None, prefer_native: bool = False, key
     Args:
         path: a scene folder, a pose file (``cameras.json``, ``poses_bounds.npy``, ``transforms*.json``,
             ``cameras_sphere.npz``, ``*_par.txt``, KITTI ``poses.txt``, 7-Scenes ``camera-intrinsics.txt``),
-            a COLMAP model folder, a ``.torch`` chunk, or a chunk folder (``index.json`` + chunks).
+            a COLMAP model folder, a Strecha ``gt_dense_cameras`` folder, a ``.torch`` chunk, or a chunk folder
+            (``index.json`` + chunks).
         format: force one of :data:`FORMATS` (the pose file is then looked up in the folder).
         prefer_native: in a folder holding both, read the native pose file instead of ``cameras.json``.
         key: the scene of a chunk (may be left out when the chunk holds one scene) or of a chunk folder. Chunks
@@ -83,7 +87,7 @@ def load_scene(path, format: str | None = None, prefer_native: bool = False, key
             return _LOADERS[name](candidates[name])
     raise DataError(f"{path}: no supported pose file (cameras.json, poses_bounds.npy, transforms*.json, "
                     "cameras_sphere.npz, *_par.txt, COLMAP sparse model, KITTI poses.txt + calib.txt, "
-                    "7-Scenes camera-intrinsics.txt + poses/*.pose.txt)")
+                    "7-Scenes camera-intrinsics.txt + poses/*.pose.txt, Strecha gt_dense_cameras/*.camera)")
 
 
 def _chunk_scene(file: pathlib.Path, key: str | None) -> Scene:
@@ -148,6 +152,9 @@ def _pose_files(folder: pathlib.Path) -> dict[str, pathlib.Path]:
         found["kitti"] = folder / "poses.txt"
     if (folder / "camera-intrinsics.txt").is_file() and _has_7scenes_poses(folder):
         found["7scenes"] = folder / "camera-intrinsics.txt"
+    cameras = folder if folder.name == CAMERA_FOLDER else folder / CAMERA_FOLDER
+    if is_strecha_folder(cameras):
+        found["strecha"] = cameras
     return found
 
 

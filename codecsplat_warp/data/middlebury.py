@@ -14,8 +14,8 @@ import pathlib
 import numpy as np
 
 from ..errors import DataError
-from .scene import (EncodedImages, Scene, bounds_from_focus, cameras_from_arrays, check_pose_values,
-                    read_image_size, require_file)
+from .scene import (EncodedImages, Scene, cameras_from_arrays, check_pose_values, depth_range, read_image_size,
+                    require_file)
 
 VALUES_PER_VIEW = 21
 
@@ -37,9 +37,7 @@ def load_middlebury(file, near: float | None = None, far: float | None = None) -
     w2c[:, :3, 3] = values[:, 18:21]
     c2w = np.linalg.inv(w2c)
     width, height = read_image_size(folder / frame_names[0], f"{file}: frame 0")
-    if near is None or far is None:
-        guess_near, guess_far = bounds_from_focus(c2w)
-        near, far = guess_near if near is None else near, guess_far if far is None else far
+    near, far = depth_range(c2w, near, far)
     cameras = cameras_from_arrays(file, K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], c2w, near, far, width, height)
     return Scene(
         images=EncodedImages([folder / n for n in frame_names], width, height),

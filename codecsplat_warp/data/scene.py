@@ -270,17 +270,22 @@ def bounds_from_focus(c2w: np.ndarray) -> tuple[float, float]:
     return max(near, 1e-3 * far), far
 
 
+def depth_range(c2w: np.ndarray, near: float | None, far: float | None) -> tuple[float, float]:
+    """(near, far): the given values, and :func:`bounds_from_focus` of OpenCV c2w [V,4,4] for those left None."""
+    if near is None or far is None:
+        guess_near, guess_far = bounds_from_focus(c2w)
+        near, far = guess_near if near is None else near, guess_far if far is None else far
+    return near, far
+
 
 def shared_pinhole_scene(file: pathlib.Path, folder: pathlib.Path, frame_names: list[str], c2w: np.ndarray,
                          intrinsics: tuple[float, float, float, float], near: float | None, far: float | None,
                          source: str) -> Scene:
     """A scene of one pinhole camera (``intrinsics`` = fx, fy, cx, cy in pixels, centres at +0.5) at the poses
     ``c2w`` [V,4,4] (OpenCV camera-to-world), images ``folder/frame_names`` (their size read from the first);
-    near/far from :func:`bounds_from_focus` where not given. ``source`` names the format and file."""
+    near/far from :func:`depth_range`. ``source`` names the format and file."""
     width, height = read_image_size(folder / frame_names[0], f"{file}: frame 0")
-    if near is None or far is None:
-        guess_near, guess_far = bounds_from_focus(c2w)
-        near, far = guess_near if near is None else near, guess_far if far is None else far
+    near, far = depth_range(c2w, near, far)
     V = len(c2w)
     fx, fy, cx, cy = (np.full(V, value) for value in intrinsics)
     cameras = cameras_from_arrays(file, fx, fy, cx, cy, c2w, near, far, width, height)
