@@ -202,6 +202,19 @@ def emit_intersections(
 
 
 @wp.func
+def intersection_position(
+    splats: wp.array2d(dtype=Any), radii: wp.array(dtype=wp.vec2i), counts: wp.array(dtype=wp.int64),
+    inclusive_offsets: wp.array(dtype=wp.int64), row: int, tx: int, ty: int, tile_size: int, tiles_x: int,
+    tiles_y: int,
+):  # fmt: skip
+    """The position at which :func:`emit_intersections` writes the intersection of projected row ``row`` with tile
+    ``(tx, ty)`` of the row's image: a row's intersections follow its tile rectangle row by row, from
+    ``inclusive_offsets[row] - counts[row]`` on."""
+    rect = tile_rect(splats[row, MEAN_X], splats[row, MEAN_Y], radii[row], tile_size, tiles_x, tiles_y)
+    return int(inclusive_offsets[row] - counts[row]) + (ty - rect[1]) * (rect[2] - rect[0]) + tx - rect[0]
+
+
+@wp.func
 def key_tile(key: Any, depth_bits: int):
     """The flat tile index of a sort key."""
     return int(wp.int64(key) >> wp.int64(depth_bits))

@@ -4,7 +4,8 @@
   (paper Eq. 3), :func:`plane_sweep_cost_volume`, and the view-selection helpers :func:`inverse_depth_candidates`,
   :func:`all_other_views`, :func:`nearest_views`;
 * :mod:`.raster`: :func:`rasterize` (3D Gaussians -> images, gsplat's conventions, with a backward) and
-  :func:`project_gaussians` (the projection step alone, -> :class:`ProjectedGaussians`), :class:`RasterMeta`.
+  :func:`project_gaussians` (the projection step alone, -> :class:`ProjectedGaussians`), :class:`RasterMeta`;
+  :func:`cpu_layout` picks how CPU calls composite (benchmarks and tests).
 
 Shapes, dtypes and units are in each function's docstring.
 """
@@ -12,9 +13,9 @@ Shapes, dtypes and units are in each function's docstring.
 from .geometry import (
     all_other_views, inverse_depth_candidates, nearest_views, plane_sweep_cost_volume, reproject_average, unproject,
 )
-from .raster import ProjectedGaussians, RasterMeta, project_gaussians, rasterize
+from .raster import ProjectedGaussians, RasterMeta, cpu_layout, project_gaussians, rasterize
 
 __all__ = [
     "all_other_views", "inverse_depth_candidates", "nearest_views", "plane_sweep_cost_volume", "reproject_average",
-    "unproject", "ProjectedGaussians", "RasterMeta", "project_gaussians", "rasterize",
+    "unproject", "ProjectedGaussians", "RasterMeta", "cpu_layout", "project_gaussians", "rasterize",
 ]
