@@ -35,7 +35,7 @@ BENCHMARKS = {
     "raster": "codecsplat_warp.bench.raster",
     "report": "codecsplat_warp.bench.report",
 }
-"""``codecsplat bench NAME`` -> module with ``add_arguments(parser)`` and ``run(args) -> dict``."""
+"""``codecsplat bench NAME`` -> module with ``run(args) -> dict`` (its options: :mod:`.bench.options`)."""
 
 USER_OS_ERRORS = (FileNotFoundError, PermissionError, IsADirectoryError, NotADirectoryError, FileExistsError)
 """File-system errors caused by the paths a user gave: reported as user errors."""
@@ -53,6 +53,8 @@ class _Parser(argparse.ArgumentParser):
 def _common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (CUDA when available)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    parser.add_argument("--threads", type=int, help="CPU threads for Warp and torch work (default: "
+                        "$CODECSPLAT_THREADS, else every available core)")
 
 
 def _model_options(parser: argparse.ArgumentParser) -> None:
@@ -68,10 +70,9 @@ def _number_list(kind, text: str, what: str) -> list:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .demo import DEMO_LAMBDAS, DEMO_SEED, DEMO_TARGET_VIEWS
-    from .eval.evaluate import BASELINE_NAMES, PAPER_LAMBDAS
-    from .eval.protocols import PROTOCOLS
-    from .export.video import FORMATS
+    from .bench.options import ARGUMENTS as BENCHMARK_ARGUMENTS
+    from .choices import BASELINE_NAMES, DEMO_LAMBDAS, DEMO_SEED, DEMO_TARGET_VIEWS, FRAME_FORMATS as FORMATS
+    from .choices import PAPER_LAMBDAS, PROTOCOL_NAMES as PROTOCOLS
 
     parser = _Parser(prog="codecsplat", description="CodecSplat on NVIDIA Warp: KB-level feed-forward 3D Gaussian "
                                                     "splatting bitstreams, kernels, benchmarks and tools.")
@@ -145,16 +146,25 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = sub.add_parser("bench", help="benchmarks (tables on stdout, JSON with --out)")
     bench_sub = bench.add_subparsers(dest="benchmark", required=True, parser_class=_Parser)
-    for name, module in BENCHMARKS.items():
+    for name in BENCHMARKS:
         p = bench_sub.add_parser(name, help=f"{name} benchmark")
         _common(p)
         p.add_argument("--out", help="write the JSON result to this file")
-        importlib.import_module(module).add_arguments(p)
+        BENCHMARK_ARGUMENTS[name](p)
     return parser
 
 
 # --------------------------------------------------------------------------------------------------
 # Shared steps
+def _use_threads(count: int | None) -> None:
+    """Apply ``--threads`` (or its default) before a command runs (imports torch and Warp)."""
+    from .device import set_cpu_threads
+
+    if count is not None and count < 1:
+        raise UsageError(f"--threads must be a positive integer, got {count}")
+    set_cpu_threads(count)
+
+
 def _device(args):
     from .device import resolve_device
 
@@ -426,6 +436,8 @@ def _cmd_selfcheck(args) -> int:
         print(json.dumps({k: v for k, v in result.items() if k != "table"}, indent=2))
     else:
         print(result["table"])
+        if args.device == "auto" and len(devices) == 1:
+            print("\nno CUDA GPU found: the CPU was checked alone")
         print("\nselfcheck: " + ("all kernels agree with their float64 references" if result["ok"] else "FAILED"))
     return EXIT_OK if result["ok"] else EXIT_INTERNAL
 
@@ -451,6 +463,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``codecsplat`` console script; returns the exit code."""
     try:
         args = build_parser().parse_args(argv)
+        _use_threads(args.threads)
         return COMMANDS[args.command](args)
     except CodecSplatError as exc:
         print(f"codecsplat: error: {exc}", file=sys.stderr)

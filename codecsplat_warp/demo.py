@@ -25,6 +25,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .cameras import Cameras
+from .choices import DEMO_LAMBDAS, DEMO_SEED, DEMO_TARGET_VIEWS
 from .codec import bytes_report, check_lambda
 from .data.procedural import ProceduralConfig, procedural_scene
 from .errors import InputError
@@ -39,9 +40,6 @@ from .metrics.image import ImageMetrics
 from .model.codecsplat import model_id
 from .model.prune import prune_gaussians
 
-DEMO_SEED = 3
-DEMO_LAMBDAS = (16.0, 128.0, 1024.0)
-DEMO_TARGET_VIEWS = 2
 
 
 @dataclass

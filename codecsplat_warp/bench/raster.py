@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import traceback
-from dataclasses import dataclass
 
 import torch
 import warp as wp
@@ -35,32 +34,11 @@ from ..metrics.image import psnr
 from ..ops.raster import GAUSSIAN_ARGUMENTS, rasterize
 from ..reference.raster import rasterize_dense
 from ..synthetic import make_rig, smooth_depth
+from .options import WORKLOADS, Workload
 
-
-@dataclass(frozen=True)
-class Workload:
-    name: str
-    views: int
-    height: int
-    width: int
-
-
-WORKLOADS = {
-    "re10k": Workload("re10k", 2, 256, 256),
-    "dl3dv": Workload("dl3dv", 8, 256, 448),
-}
 
 REFERENCE_WORKLOAD = Workload("dense-ref", 1, 40, 40)
 """Small scene (1,600 Gaussians, 40x40) where the dense O(HWN) torch reference is affordable."""
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--workloads", default="re10k,dl3dv", help=f"comma list of {', '.join(WORKLOADS)}")
-    parser.add_argument("--reps", type=int, default=None, help="timed repetitions (default: 30 on CUDA, 3 on CPU)")
-    parser.add_argument("--scale", type=float, default=1.0, help="fraction of the Gaussians kept (0 < scale <= 1)")
-    parser.add_argument("--no-gsplat", action="store_true", help="skip gsplat even when it is importable")
-    parser.add_argument("--kernels", type=int, default=0, metavar="N",
-                        help="CUDA: also list the N kernels with the most GPU time per call, ours and gsplat's")
 
 
 def run(args: argparse.Namespace) -> dict:
