@@ -121,30 +121,33 @@ def available_cores() -> int:
 
 
 def cpu_threads() -> int:
-    """Threads the CPU work of this package uses: Warp launches that the ops split (see
-    :func:`codecsplat_warp.ops.primitives.run_concurrently`) and torch's intra-op pool. The count of
-    :func:`set_cpu_threads`, else ``$CODECSPLAT_THREADS``, else :func:`available_cores`.
+    """Threads the Warp launches that the ops split run on (see
+    :func:`codecsplat_warp.ops.primitives.run_concurrently`): the count of :func:`set_cpu_threads`, else
+    ``$CODECSPLAT_THREADS`` (which then sets torch's intra-op count too), else :func:`available_cores`.
 
     Raises:
         InputError: ``$CODECSPLAT_THREADS`` is not a positive integer.
     """
+    global _threads
     if _threads is None:
-        set_cpu_threads(None)
+        if _threads_variable() is None:
+            _threads = available_cores()
+        else:
+            set_cpu_threads()
     return _threads
 
 
-def set_cpu_threads(count: int | None) -> int:
-    """Use ``count`` threads for CPU work from now on (None: ``$CODECSPLAT_THREADS``, else the available cores);
-    also sets torch's intra-op thread count, so that torch and Warp work never run on more threads than this
-    between them. Returns the count.
+def set_cpu_threads(count: int | None = None) -> int:
+    """Run CPU work on ``count`` threads from now on (None: ``$CODECSPLAT_THREADS``, else the available cores): the
+    Warp launches that the ops split and torch's intra-op pool alike. Either runs while the other waits, so the two
+    never take more cores than this between them. Returns the count.
 
     Raises:
         InputError: ``count`` (or ``$CODECSPLAT_THREADS``) is not a positive integer.
     """
     global _threads
     if count is None:
-        text = os.environ.get(THREADS_VARIABLE, "").strip()
-        count = _positive_count(text, f"${THREADS_VARIABLE}") if text else available_cores()
+        count = _threads_variable() or available_cores()
     elif isinstance(count, bool) or not isinstance(count, int) or count < 1:
         raise InputError(f"the thread count must be a positive integer, got {count!r}")
     if torch.get_num_threads() != count:
@@ -153,13 +156,14 @@ def set_cpu_threads(count: int | None) -> int:
     return count
 
 
-def _positive_count(text: str, what: str) -> int:
-    try:
-        count = int(text)
-    except ValueError:
-        count = 0
+def _threads_variable() -> int | None:
+    """``$CODECSPLAT_THREADS`` as a positive int, None when unset or empty; InputError for anything else."""
+    text = os.environ.get(THREADS_VARIABLE, "").strip()
+    if not text:
+        return None
+    count = int(text) if text.isdigit() else 0
     if count < 1:
-        raise InputError(f"{what} must be a positive integer, got {text!r}")
+        raise InputError(f"${THREADS_VARIABLE} must be a positive integer, got {text!r}")
     return count
 
 
