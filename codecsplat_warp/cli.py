@@ -29,6 +29,7 @@ EXIT_OK, EXIT_USER, EXIT_INTERNAL = 0, 1, 2
 
 BENCHMARKS = {
     "codec": "codecsplat_warp.bench.codec",
+    "crossdevice": "codecsplat_warp.bench.crossdevice",
     "extreme": "codecsplat_warp.bench.extreme",
     "geometry": "codecsplat_warp.bench.geometry",
     "leaveout": "codecsplat_warp.bench.leaveout",

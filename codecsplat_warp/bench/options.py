@@ -95,6 +95,15 @@ def codec_arguments(parser: argparse.ArgumentParser) -> None:
                         help="only decode FILE (from --write-bitstream) on --device and check its symbols")
 
 
+def crossdevice_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--write", metavar="DIR", help="encode and decode here (normally --device cuda) and write the "
+                        "fixture to DIR")
+    parser.add_argument("--check", metavar="DIR", help="decode DIR's bitstream here (normally --device cpu) and "
+                        "compare with DIR's Gaussians and renders")
+    parser.add_argument("--reps", type=int, default=None,
+                        help="with --write: timed decodes per precision (default: 20 on CUDA, 3 on CPU)")
+
+
 def extreme_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cases", default="", help="comma list of substrings; run only the cases whose name has one")
 
@@ -149,6 +158,7 @@ def report_arguments(parser: argparse.ArgumentParser) -> None:
 
 ARGUMENTS = {
     "codec": codec_arguments,
+    "crossdevice": crossdevice_arguments,
     "extreme": extreme_arguments,
     "geometry": geometry_arguments,
     "leaveout": leaveout_arguments,
