@@ -1,15 +1,25 @@
 """Per-tile front-to-back alpha compositing laid out for the CPU, and its hand-written backward.
 
 :mod:`.raster_composite` has the CUDA layout (one block of lanes per tile, rows staged in shared memory). Here one
-thread composites a whole tile: its pixels one after another, each walking the tile's depth-sorted rows in place
-(``sorted_ids`` into ``splats``), with the constants, the skipping and stopping rules and the arithmetic of
-:mod:`.raster_composite`. Tiles write disjoint pixels, so the host splits the tiles into runs launched on several
-threads (``first_tile`` is a run's first tile), and a pixel's result does not depend on that split.
+thread composites a whole tile, image row by image row (*line* by line): a pass over the tile's depth-sorted rows
+finds, for each row, the pixels of the line it can reach (a bit mask, see below) and lists the rows that reach any;
+then each pixel of the line walks that list in place (``sorted_ids`` into ``splats``), with the constants, the
+skipping and stopping rules and the arithmetic of :mod:`.raster_composite`. Tiles write disjoint pixels, so the host
+splits the tiles into runs launched on several threads (``first_tile`` is a run's first tile), and a pixel's result
+does not depend on that split.
 
-Skip power: a row is skipped before its ``exp`` when its power at the pixel exceeds
-``log(ALPHA_LEVELS * opacity) + SKIP_MARGIN`` (computed once per intersection into ``skip_powers``). There
-``opacity * exp(-power) <= exp(-SKIP_MARGIN) / 255``, so alpha is below the 1/255 threshold by a margin far
-larger than the rounding of ``exp``, ``log`` and the product: the same rows are composited as without the test.
+Two tests leave out rows that cannot contribute, without changing which rows are composited:
+
+* Skip power: a row is skipped at a pixel before its ``exp`` when its power there exceeds
+  ``S = log(ALPHA_LEVELS * opacity) + SKIP_MARGIN`` (``skip_powers``, one per intersection). There
+  ``opacity * exp(-power) <= exp(-SKIP_MARGIN) / 255``: alpha is below the 1/255 threshold by a margin far larger
+  than the rounding of ``exp``, ``log`` and the product.
+* Line masks: the power along a line is a quadratic in the pixel's x, so the pixels where it can be at most ``S``
+  form an interval, solved for in float64 (:func:`line_mask`). The interval is taken for a raised threshold
+  ``S (1 + 4 g k) + g`` (``line_powers``), where ``k`` is the condition number of the row's conic and ``g`` bounds the
+  relative rounding of the kernel's power (:data:`POWER_ROUNDING`): the power the kernel computes differs from the
+  exact quadratic by at most ``g k`` times itself, so every pixel where the computed power is at most ``S`` is in
+  the interval. A conic too ill-conditioned for that (``g k > 0.1``) gets every pixel of the line.
 
 The backward walks each pixel's rows back to front from the index the forward saved, as the CUDA kernel does, and
 adds the gradient of every (pixel, row) pair to that row's *intersection* with the tile: row ``grads`` of the
@@ -40,11 +50,89 @@ SKIP_MARGIN = 1.0 / 1024.0
 """Margin of the skip power above ``log(ALPHA_LEVELS * opacity)`` (see the module docstring): a skipped row's alpha
 is at most ``exp(-1/1024) = 0.99902`` times the threshold, where float rounding moves it by about 1e-6."""
 
+POWER_ROUNDING = {"float32": 1.0e-6, "float64": 1.0e-12}
+"""Bound ``g`` on the relative rounding error of the kernel's power ``0.5 (a dx^2 + c dy^2) + b dx dy`` in each dtype,
+relative to ``0.5 a dx^2 + 0.5 c dy^2 + |b dx dy|`` (about 16 units in the last place; float64 is given more, so
+that it also covers the float64 rounding of the line masks)."""
+
+MAX_CONDITIONED = 0.1
+"""Largest ``g k`` (rounding bound times conic condition number) for which a row gets a line interval; rows beyond
+reach every pixel of a line (about 1e5 for float32: a Gaussian over 300 times longer than wide on screen)."""
+
+LINE_SLACK = 1.0e-3
+"""Pixels by which a line interval is widened on each side against the float64 rounding of its ends."""
+
 
 @wp.func
 def skip_power(opacity: Any):
     """Power above which a row of this opacity has alpha below :data:`.raster_row.ALPHA_THRESHOLD` for certain."""
     return wp.log(type(opacity)(ALPHA_LEVELS) * opacity) + type(opacity)(SKIP_MARGIN)
+
+
+@wp.func
+def line_power(splats: wp.array2d(dtype=Any), row: int, skip: Any, rounding: wp.float64):
+    """The threshold of the row's line intervals: its skip power raised by the rounding the kernel's power may
+    carry (see the module docstring), or +inf when the conic is too ill-conditioned for intervals."""
+    a = wp.float64(splats[row, CONIC_A])
+    b = wp.float64(splats[row, CONIC_B])
+    c = wp.float64(splats[row, CONIC_C])
+    det = a * c - b * b
+    if not (a > wp.float64(0.0) and det > wp.float64(0.0)):
+        return wp.float64(wp.inf)
+    largest = wp.float64(0.5) * (a + c) + wp.sqrt(wp.float64(0.25) * (a - c) * (a - c) + b * b)
+    spread = rounding * largest * largest / det  # g k
+    if spread > wp.float64(MAX_CONDITIONED):
+        return wp.float64(wp.inf)
+    return wp.float64(skip) * (wp.float64(1.0) + wp.float64(4.0) * spread) + rounding
+
+
+@wp.func
+def span_mask(first: int, last: int):
+    """Bits ``first..last`` (0 <= first <= last < 32) set."""
+    return wp.uint32((wp.uint64(1) << wp.uint64(last + 1)) - (wp.uint64(1) << wp.uint64(first)))
+
+
+@wp.func
+def line_mask(splats: wp.array2d(dtype=Any), row: int, threshold: wp.float64, py: int, x0: int, count: int):
+    """Bit ``k`` set when pixel ``(x0 + k, py)`` (``k < count``) may see the row's power at or below its skip power:
+    the pixels whose centre lies in the interval where the row's quadratic power along the line is at most
+    ``threshold`` (:func:`line_power`), widened by :data:`LINE_SLACK`; every pixel when ``threshold`` is inf."""
+    if not wp.isfinite(threshold):
+        return span_mask(0, count - 1)
+    a = wp.float64(splats[row, CONIC_A])
+    b = wp.float64(splats[row, CONIC_B])
+    c = wp.float64(splats[row, CONIC_C])
+    dy = wp.float64(splats[row, MEAN_Y]) - (wp.float64(py) + wp.float64(0.5))
+    discriminant = wp.float64(2.0) * a * threshold - dy * dy * (a * c - b * b)
+    if discriminant < wp.float64(0.0):
+        return wp.uint32(0)
+    half_width = wp.sqrt(discriminant) / a + wp.float64(LINE_SLACK)
+    centre = wp.float64(splats[row, MEAN_X]) + b * dy / a - wp.float64(0.5)  # in pixel indices: centre x - 0.5
+    left = wp.float64(x0)
+    right = wp.float64(x0 + count - 1)
+    low = wp.max(centre - half_width, left - wp.float64(1.0))
+    high = wp.min(centre + half_width, right + wp.float64(1.0))
+    first = wp.max(int(wp.ceil(low)), x0) - x0
+    last = wp.min(int(wp.floor(high)), x0 + count - 1) - x0
+    if first > last:
+        return wp.uint32(0)
+    return span_mask(first, last)
+
+
+@wp.func
+def list_line_rows(splats: wp.array2d(dtype=Any), sorted_ids: wp.array(dtype=wp.int32),
+                   line_powers: wp.array(dtype=wp.float64), start: int, end: int, py: int, x0: int, count: int,
+                   line_rows: wp.array(dtype=wp.int32), line_masks: wp.array(dtype=wp.uint32)):  # fmt: skip
+    """List the sorted intersections ``[start, end)`` that may reach a pixel of line ``py`` (``count`` pixels from
+    ``x0``) in ``line_rows[start:]``, in order, with their line masks in ``line_masks``; returns the list's end."""
+    listed = start
+    for t in range(start, end):
+        mask = line_mask(splats, sorted_ids[t], line_powers[t], py, x0, count)
+        if mask != wp.uint32(0):
+            line_rows[listed] = t
+            line_masks[listed] = mask
+            listed += 1
+    return listed
 
 
 @wp.func
@@ -69,7 +157,11 @@ def composite_forward_tiles(
     tiles_per_image: int,
     first_tile: int,
     min_transmittance: Any,
+    rounding: wp.float64,
     skip_powers: wp.array(dtype=Any),
+    line_powers: wp.array(dtype=wp.float64),
+    line_rows: wp.array(dtype=wp.int32),
+    line_masks: wp.array(dtype=wp.uint32),
     out_color: wp.array2d(dtype=Any),
     out_depth: wp.array(dtype=Any),
     out_alpha: wp.array(dtype=Any),
@@ -81,9 +173,10 @@ def composite_forward_tiles(
     Args:
         ranges, sorted_ids, splats, background, min_transmittance, out_*: as in
             :func:`.raster_composite.composite_kernels`' ``composite_forward``.
-        first_tile: the flat tile of thread 0.
-        skip_powers: ``[M]`` output, the skip power of every sorted intersection of the tile (see the module
-            docstring), which the backward reads.
+        first_tile: the flat tile of thread 0; rounding: :data:`POWER_ROUNDING` of the dtype.
+        skip_powers, line_powers: ``[M]`` outputs, the skip power and the line-interval threshold of every sorted
+            intersection of the tile (see the module docstring), which the backward reads.
+        line_rows, line_masks: ``[M]`` scratch (int32, uint32), the list of :func:`list_line_rows`.
     """
     tile = first_tile + wp.tid()
     corner = tile_corner(tile, tile_size, tiles_x, tiles_per_image)
@@ -91,23 +184,31 @@ def composite_forward_tiles(
     start = ranges[tile, 0]
     end = ranges[tile, 1]
     for t in range(start, end):
-        skip_powers[t] = skip_power(splats[sorted_ids[t], OPACITY])
+        row = sorted_ids[t]
+        skip_powers[t] = skip_power(splats[row, OPACITY])
+        line_powers[t] = line_power(splats, row, skip_powers[t], rounding)
     zero = out_alpha.dtype(0.0)
     one = out_alpha.dtype(1.0)
     render_depth = out_depth.shape[0] > 0
     x0 = corner[1] * tile_size
     y0 = corner[2] * tile_size
+    count = wp.min(x0 + tile_size, width) - x0
     for py in range(y0, wp.min(y0 + tile_size, height)):
+        listed = list_line_rows(splats, sorted_ids, line_powers, start, end, py, x0, count, line_rows, line_masks)
         cy = out_alpha.dtype(float(py)) + out_alpha.dtype(0.5)
-        for px in range(x0, wp.min(x0 + tile_size, width)):
+        for px in range(x0, x0 + count):
             cx = out_alpha.dtype(float(px)) + out_alpha.dtype(0.5)
+            bit = wp.uint32(1) << wp.uint32(px - x0)
             T = one
             r = zero
             g = zero
             b = zero
             depth = zero
             last = start - 1
-            for t in range(start, end):
+            for j in range(start, listed):
+                if (line_masks[j] & bit) == wp.uint32(0):
+                    continue
+                t = line_rows[j]
                 row = sorted_ids[t]
                 power = gaussian_power(splats, row, cx, cy)
                 if power > skip_powers[t]:
@@ -155,6 +256,9 @@ def composite_backward_tiles(
     tiles_per_image: int,
     first_tile: int,
     skip_powers: wp.array(dtype=Any),
+    line_powers: wp.array(dtype=wp.float64),
+    line_rows: wp.array(dtype=wp.int32),
+    line_masks: wp.array(dtype=wp.uint32),
     radii: wp.array(dtype=wp.vec2i),
     counts: wp.array(dtype=wp.int64),
     inclusive_offsets: wp.array(dtype=wp.int64),
@@ -172,7 +276,7 @@ def composite_backward_tiles(
     Args:
         ranges, sorted_ids, splats, background, state, last_index, grad_*: as in
             :func:`.raster_composite.composite_kernels`' ``composite_backward``.
-        skip_powers: ``[M]`` as the forward wrote them.
+        skip_powers, line_powers: ``[M]`` as the forward wrote them; line_rows, line_masks: ``[M]`` scratch.
         radii, counts, inclusive_offsets: the binning's inputs (``[B*N]``), to find where each intersection was
             emitted.
         positions: ``[M]`` int32 scratch: the emitted position of each sorted intersection of the tile.
@@ -194,10 +298,13 @@ def composite_backward_tiles(
     with_depth = grad_depth.shape[0] > 0
     x0 = corner[1] * tile_size
     y0 = corner[2] * tile_size
+    count = wp.min(x0 + tile_size, width) - x0
     for py in range(y0, wp.min(y0 + tile_size, height)):
+        listed = list_line_rows(splats, sorted_ids, line_powers, start, end, py, x0, count, line_rows, line_masks)
         cy = grad_intersections.dtype(float(py)) + half
-        for px in range(x0, wp.min(x0 + tile_size, width)):
+        for px in range(x0, x0 + count):
             cx = grad_intersections.dtype(float(px)) + half
+            bit = wp.uint32(1) << wp.uint32(px - x0)
             pixel = (camera * height + py) * width + px
             last = last_index[pixel]
             T_final = state[pixel, 0]
@@ -227,8 +334,11 @@ def composite_backward_tiles(
             acc_g = zero
             acc_b = zero
             acc_depth = zero
-            for step in range(last + 1 - start):
-                t = last - step
+            for step in range(listed - start):
+                j = listed - 1 - step
+                t = line_rows[j]
+                if t > last or (line_masks[j] & bit) == wp.uint32(0):
+                    continue
                 row = sorted_ids[t]
                 power = gaussian_power(splats, row, cx, cy)
                 if power > skip_powers[t]:

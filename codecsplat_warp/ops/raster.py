@@ -415,45 +415,55 @@ def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, setting
              zero_culled: bool = False) -> torch.Tensor:  # fmt: skip
     """Fill the projected rows ``splats [B*N, 10]`` (rows of culled Gaussians only with ``zero_culled``, else left
     as they were), ``tile_counts [B*N]``, ``flags`` and the ``visible`` list, and zero the tile ``ranges``
-    ``[T, 2]`` int32 (``[0, 2]`` for none); return radii ``[B*N, 2]`` int32."""
+    ``[T, 2]`` int32 (``[0, 2]`` for none); return radii ``[B*N, 2]`` int32. On the CPU the Gaussians are split
+    over the threads, and the ``visible`` list is then rewritten in row order (:func:`_list_visible_in_order`)."""
     dtype = means.dtype
     scalar = warp_dtype(dtype)
     radii = tile_counts.new_empty(splats.shape[0], 2, dtype=torch.int32)
-    launch(
-        raster_project.projection_kernels(settings.sh_degree >= 0).project,
-        (cameras.viewmats.shape[0], means.shape[0]),
-        [
-            *_projection_inputs(means, quats, scales, opacities, coeffs, cameras),
-            settings.sh_degree,
-            settings.width,
-            settings.height,
-            scalar(settings.near),
-            scalar(settings.far),
-            _LOW_PASS[dtype],
-            int(settings.antialiased),
-            settings.tile_size,
-            settings.tiles_x,
-            settings.tiles_y,
-            int(zero_culled),
-            splats,
-            vectors(radii),
-            tile_counts,
-            flags,
-            visible.count,
-            visible.rows,
-            vectors(ranges),
-        ],
-        wdev,
-        layout=dtype,
-    )
+    args = [
+        *_projection_inputs(means, quats, scales, opacities, coeffs, cameras),
+        settings.sh_degree,
+        settings.width,
+        settings.height,
+        scalar(settings.near),
+        scalar(settings.far),
+        _LOW_PASS[dtype],
+        int(settings.antialiased),
+        settings.tile_size,
+        settings.tiles_x,
+        settings.tiles_y,
+        int(zero_culled),
+    ]
+    outputs = [splats, vectors(radii), tile_counts, flags, visible.count, visible.rows, vectors(ranges)]
+    kernel = raster_project.projection_kernels(settings.sh_degree >= 0).project
+    B = cameras.viewmats.shape[0]
+    run_concurrently([
+        functools.partial(launch, kernel, (B, count), [*args, first, *outputs], wdev, layout=dtype)
+        for first, count in row_chunks(means.shape[0], means.device)
+    ])  # fmt: skip
+    if means.device.type == "cpu":
+        _list_visible_in_order(radii, visible)
     return radii
+
+
+def _list_visible_in_order(radii: torch.Tensor, visible: _Visible) -> None:
+    """Rewrite the ``visible`` list as the visible rows (non-zero ``radii [B*N, 2]``) in increasing order, i.e.
+    camera by camera: the order in which concurrent CPU launches appended them is not reproducible, and the
+    projection backward walks the list camera by camera (:func:`_project_backward`)."""
+    rows = torch.nonzero(radii.any(dim=1)).view(-1)
+    visible.count[0] = rows.shape[0]
+    visible.rows[: rows.shape[0]] = rows
 
 
 def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, cameras: _Cameras, visible: _Visible,
                       settings: _Settings, wdev) -> list[torch.Tensor]:  # fmt: skip
     """Gradients of means ``[N,3]``, quats ``[N,4]``, scales ``[N,3]``, opacities ``[N]`` and coeffs ``[N,K,3]``
     from the gradient of the projected rows ``[B*N, 10]`` (views of one zero-initialised buffer); one thread per
-    row of the ``visible`` list."""
+    row of the ``visible`` list.
+
+    On the CPU (where the list is in row order) the rows are taken camera after camera, each camera's split over
+    the threads: a Gaussian has one row per camera, so no two threads add to its gradient at once (Warp's CPU
+    atomics are plain adds), and its cameras' terms are added in camera order on any number of threads."""
     B, (N, K) = cameras.viewmats.shape[0], coeffs.shape[:2]
     dtype = means.dtype
     sizes = (3 * N, 4 * N, 3 * N, N, 3 * K * N)
@@ -462,25 +472,30 @@ def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, camera
     zero = _ZERO[dtype]
     adj_args = [vectors(grads[0]), vectors(grads[1]), vectors(grads[2]), grads[3], vectors(grads[4]), None, None, None,
                 None, None, 0, 0, 0, zero, 0, grad_rows]  # fmt: skip
-    launch(
-        raster_project.projection_kernels(settings.sh_degree >= 0).differentiable,
-        B * N,
-        [
-            *_projection_inputs(means, quats, scales, opacities, coeffs, cameras),
-            visible.count,
-            visible.rows,
-            settings.sh_degree,
-            settings.width,
-            settings.height,
-            _LOW_PASS[dtype],
-            int(settings.antialiased),
-            torch.empty_like(grad_rows),
-        ],
-        wdev,
-        adj_args=adj_args,
-        layout=dtype,
-    )
+    inputs = _projection_inputs(means, quats, scales, opacities, coeffs, cameras)
+    settings_args = [settings.sh_degree, settings.width, settings.height, _LOW_PASS[dtype], int(settings.antialiased),
+                     torch.empty_like(grad_rows)]  # fmt: skip
+    kernel = raster_project.projection_kernels(settings.sh_degree >= 0).differentiable
+    if means.device.type != "cpu":
+        launch(kernel, B * N, [*inputs, visible.count, visible.rows, *settings_args], wdev, adj_args=adj_args,
+               layout=dtype)  # fmt: skip
+        return grads
+    rows = visible.rows[: int(visible.count[0])]
+    bounds = torch.searchsorted(rows, torch.arange(B + 1, dtype=rows.dtype) * N).tolist()
+    for camera in range(B):
+        pieces = [(bounds[camera] + first, count)
+                  for first, count in row_chunks(bounds[camera + 1] - bounds[camera], means.device)]  # fmt: skip
+        run_concurrently([
+            functools.partial(launch, kernel, count, [*inputs, _length(count), rows[first : first + count],
+                                                      *settings_args], wdev, adj_args=adj_args, layout=dtype)
+            for first, count in pieces
+        ])  # fmt: skip
     return grads
+
+
+def _length(count: int) -> torch.Tensor:
+    """``[count]`` as the ``[1]`` int64 tensor a list length is passed as."""
+    return torch.tensor([count], dtype=torch.int64)
 
 
 class _ProjectGaussians(torch.autograd.Function):
@@ -608,10 +623,12 @@ class _BlockComposite(NamedTuple):
 
 
 class _TileState(NamedTuple):
-    """What the tile layout's backward needs from its forward: ``skip_powers [count]`` and the binning's ``radii
-    [B*N, 2]`` int32, ``tile_counts`` and inclusive ``offsets`` ``[B*N]`` int64."""
+    """What the tile layout's backward needs from its forward: ``skip_powers [count]`` (the Gaussians' dtype) and
+    ``line_powers [count]`` float64, and the binning's ``radii [B*N, 2]`` int32, ``tile_counts`` and inclusive
+    ``offsets`` ``[B*N]`` int64."""
 
     skip_powers: torch.Tensor
+    line_powers: torch.Tensor
     radii: torch.Tensor
     tile_counts: torch.Tensor
     offsets: torch.Tensor
@@ -626,15 +643,18 @@ class _TileComposite(NamedTuple):
                 wdev) -> _TileState:  # fmt: skip
         """Composite into ``outputs`` (see :func:`_composite_outputs`); returns what the backward needs."""
         splats, settings = binning.splats, binning.settings
-        skip_powers = splats.new_empty(sorted_ids.shape[0])
+        count = sorted_ids.shape[0]
+        skip_powers = splats.new_empty(count)
+        line_powers = splats.new_empty(count, dtype=torch.float64)
         common = _composite_args(ranges, sorted_ids, splats, colors_or_black, settings)
         threshold = warp_dtype(splats.dtype)(settings.min_transmittance)
         run_concurrently([
             functools.partial(launch, raster_composite_cpu.composite_forward_tiles, tiles,
-                              [*common, first, threshold, skip_powers, *outputs], wdev, layout=splats.dtype)
+                              [*common, first, threshold, _POWER_ROUNDING[splats.dtype], skip_powers, line_powers,
+                               *_line_scratch(sorted_ids), *outputs], wdev, layout=splats.dtype)
             for first, tiles in _tile_runs(ranges)
         ])  # fmt: skip
-        return _TileState(skip_powers, binning.radii, binning.tile_counts, binning.offsets)
+        return _TileState(skip_powers, line_powers, binning.radii, binning.tile_counts, binning.offsets)
 
     def backward(self, saved: _Saved, colors_or_black, settings: _Settings, output_grads: list, wdev) -> torch.Tensor:
         """The gradient of the projected rows ``[B*N, 10]`` from the gradients of the flat outputs: per
@@ -646,8 +666,9 @@ class _TileComposite(NamedTuple):
         common = _composite_args(saved.ranges, saved.sorted_ids, splats, colors_or_black, settings)
         run_concurrently([
             functools.partial(launch, raster_composite_cpu.composite_backward_tiles, tiles_in_run,
-                              [*common, first, tiles.skip_powers, vectors(tiles.radii), tiles.tile_counts,
-                               tiles.offsets, saved.state, saved.last, *output_grads, positions, grad_intersections],
+                              [*common, first, tiles.skip_powers, tiles.line_powers, *_line_scratch(saved.sorted_ids),
+                               vectors(tiles.radii), tiles.tile_counts, tiles.offsets, saved.state, saved.last,
+                               *output_grads, positions, grad_intersections],
                               wdev, layout=splats.dtype)
             for first, tiles_in_run in _tile_runs(saved.ranges)
         ])  # fmt: skip
@@ -659,6 +680,17 @@ class _TileComposite(NamedTuple):
             for first, rows in row_chunks(splats.shape[0], splats.device)
         ])  # fmt: skip
         return grad_rows
+
+
+_POWER_ROUNDING = {dtype: warp_dtype(torch.float64)(raster_composite_cpu.POWER_ROUNDING[name])
+                   for dtype, name in ((torch.float32, "float32"), (torch.float64, "float64"))}  # fmt: skip
+"""The tile layout's bound on the rounding of a row's power, per Gaussian dtype (a Warp float64)."""
+
+
+def _line_scratch(sorted_ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The tile layout's per-line scratch for ``count`` sorted intersections: row list (int32) and masks (uint32)."""
+    count = sorted_ids.shape[0]
+    return sorted_ids.new_empty(count), sorted_ids.new_empty(count, dtype=torch.uint32)
 
 
 def _tile_runs(ranges: torch.Tensor) -> list[tuple[int, int]]:
