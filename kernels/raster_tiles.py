@@ -150,10 +150,12 @@ def emit_intersections(
     tiles_y: int,
     num_tiles: int,
     capacity: int,
+    first_row: int,
     keys: wp.array(dtype=Any),
     values: wp.array(dtype=wp.int32),
 ):
-    """Write the keys and values of every intersection of one projected Gaussian (one thread per row), the first
+    """Write the keys and values of every intersection of one projected Gaussian (one thread per row, from row
+    ``first_row`` on: the CPU splits the rows over threads), the first
     ``capacity`` of them, and pad the buffers from the intersection count up to ``capacity``; thread 0 also
     publishes the call's :func:`sort_key_layout` in ``flags`` at :data:`KEY_LAYOUT` (for the host).
 
@@ -172,7 +174,7 @@ def emit_intersections(
         keys: uint32 (a layout of ``bits <= 32``) or int64 output, values: int32 output (row indices; 0 for
             padding), each at least ``capacity`` long.
     """
-    i = wp.tid()
+    i = first_row + wp.tid()
     total = int(inclusive_offsets[inclusive_offsets.shape[0] - 1])
     for p in range(total + i, capacity, inclusive_offsets.shape[0]):
         keys[p] = keys.dtype(PAD_KEY)

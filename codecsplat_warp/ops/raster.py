@@ -962,30 +962,29 @@ def _sort_buffers(like: torch.Tensor, capacity: int, key_dtype: torch.dtype) -> 
 
 
 def _emit(binning: _Binning, capacity: int, keys: torch.Tensor, values: torch.Tensor, wdev) -> None:
-    """Launch :func:`~codecsplat_warp.kernels.raster_tiles.emit_intersections` over every row, or with ``capacity``
-    0 on one thread (which publishes the key layout and writes nothing)."""
+    """Launch :func:`~codecsplat_warp.kernels.raster_tiles.emit_intersections` over every row (on the CPU split over
+    the threads: rows write disjoint intersections), or with ``capacity`` 0 on one thread (which publishes the key
+    layout and writes nothing)."""
     splats, settings = binning.splats, binning.settings
-    launch(
-        raster_tiles.emit_intersections,
-        splats.shape[0] if capacity else 1,
-        [
-            splats,
-            vectors(binning.radii),
-            binning.tile_counts,
-            binning.offsets,
-            binning.flags,
-            splats.shape[0] // binning.num_cameras,
-            settings.tile_size,
-            settings.tiles_x,
-            settings.tiles_y,
-            binning.num_tiles,
-            capacity,
-            keys,
-            values,
-        ],
-        wdev,
-        layout=(splats.dtype, keys.dtype),
-    )
+    args = [
+        splats,
+        vectors(binning.radii),
+        binning.tile_counts,
+        binning.offsets,
+        binning.flags,
+        splats.shape[0] // binning.num_cameras,
+        settings.tile_size,
+        settings.tiles_x,
+        settings.tiles_y,
+        binning.num_tiles,
+        capacity,
+    ]
+    pieces = row_chunks(splats.shape[0], splats.device) if capacity else [(0, 1)]
+    run_concurrently([
+        functools.partial(launch, raster_tiles.emit_intersections, rows, [*args, first, keys, values], wdev,
+                          layout=(splats.dtype, keys.dtype))
+        for first, rows in pieces
+    ])  # fmt: skip
 
 
 def _bin_and_composite(binning: _Binning, ranges: torch.Tensor, colors_or_black: torch.Tensor,
