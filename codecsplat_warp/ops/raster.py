@@ -20,9 +20,12 @@ Function (or, when nothing needs a gradient, called without one) so that a call 
    for the other around the read; when the read shows the guess too small (or the key too wide), the keys are
    emitted, sorted and composited again into buffers of the exact size. Either way the sorted order, and so the
    render, is the same.
-5. Front-to-back compositing per tile (rows staged in shared memory; expected depth normalised in the
-   kernel), and a hand-written back-to-front backward. Projection gradients come from an adjoint launch of
-   its straight-line twin kernel.
+5. Front-to-back compositing per tile (expected depth normalised in the kernel), and a hand-written back-to-front
+   backward. On CUDA a block of lanes per tile stages its rows in shared memory
+   (:mod:`~codecsplat_warp.kernels.raster_composite`); on the CPU one thread per tile reads them in place, the
+   tiles split over :func:`~codecsplat_warp.device.cpu_threads` threads
+   (:mod:`~codecsplat_warp.kernels.raster_composite_cpu`, see :data:`CPU_LAYOUTS`), with the same results on any
+   number of threads. Projection gradients come from an adjoint launch of its straight-line twin kernel.
 
 Gradients flow to ``means``, ``quats``, ``scales``, ``opacities``, ``colors`` (RGB or SH) and
 ``background``. ``viewmats`` and ``Ks`` are **not** differentiated (their gradient is None).
@@ -585,7 +588,7 @@ def _composite_launch(device: torch.device, tile_size: int, num_tiles: int) -> _
     """The compositing layout of a call: blocks of one lane per pixel on CUDA (at most
     ``raster_composite.MAX_LANES`` a block); on the CPU the tile layout, or one-lane blocks (:func:`cpu_layout`)."""
     if device.type == "cpu" and getattr(_layout_choice, "name", CPU_LAYOUTS[0]) == "tiles":
-        return _TileComposite(num_tiles)
+        return _TILE_COMPOSITE
     pixels = tile_size * tile_size
     lanes = min(pixels, raster_composite.MAX_LANES) if device.type == "cuda" else 1
     batch = lanes if device.type == "cuda" else CPU_BATCH
@@ -634,10 +637,9 @@ class _TileState(NamedTuple):
     offsets: torch.Tensor
 
 
-class _TileComposite(NamedTuple):
-    """The CPU tile layout (:mod:`~codecsplat_warp.kernels.raster_composite_cpu`) over ``num_tiles`` flat tiles."""
-
-    num_tiles: int
+class _TileComposite:
+    """The CPU tile layout (:mod:`~codecsplat_warp.kernels.raster_composite_cpu`); stateless (one instance,
+    :data:`_TILE_COMPOSITE`)."""
 
     def forward(self, binning: _Binning, ranges, colors_or_black, sorted_ids: torch.Tensor, outputs: tuple,
                 wdev) -> _TileState:  # fmt: skip
@@ -681,6 +683,8 @@ class _TileComposite(NamedTuple):
         ])  # fmt: skip
         return grad_rows
 
+
+_TILE_COMPOSITE = _TileComposite()
 
 _POWER_ROUNDING = {dtype: warp_dtype(torch.float64)(raster_composite_cpu.POWER_ROUNDING[name])
                    for dtype, name in ((torch.float32, "float32"), (torch.float64, "float64"))}  # fmt: skip
