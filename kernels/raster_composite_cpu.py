@@ -37,10 +37,9 @@ from typing import Any
 
 import warp as wp
 
-from .raster_composite import MIN_ALPHA_FOR_DEPTH, gaussian_power
+from .raster_composite import blend_row, gaussian_power, pixel_upstream, row_alpha, row_gradient, write_pixel
 from .raster_row import (
-    ALPHA_LEVELS, ALPHA_THRESHOLD, BLUE, CONIC_A, CONIC_B, CONIC_C, DEPTH, GREEN, MAX_ALPHA, MEAN_X, MEAN_Y,
-    OPACITY, RED, ROW_WIDTH,
+    ALPHA_LEVELS, ALPHA_THRESHOLD, CONIC_A, CONIC_B, CONIC_C, DEPTH, MAX_ALPHA, MEAN_X, MEAN_Y, OPACITY, ROW_WIDTH,
 )  # fmt: skip
 from .raster_tiles import intersection_position
 
@@ -200,10 +199,7 @@ def composite_forward_tiles(
             cx = out_alpha.dtype(float(px)) + out_alpha.dtype(0.5)
             bit = wp.uint32(1) << wp.uint32(px - x0)
             T = one
-            r = zero
-            g = zero
-            b = zero
-            depth = zero
+            composited = wp.vector(zero, zero, zero, zero)
             last = start - 1
             for j in range(start, listed):
                 if (line_masks[j] & bit) == wp.uint32(0):
@@ -213,34 +209,17 @@ def composite_forward_tiles(
                 power = gaussian_power(splats, row, cx, cy)
                 if power > skip_powers[t]:
                     continue
-                alpha = wp.min(out_alpha.dtype(MAX_ALPHA), splats[row, OPACITY] * wp.exp(-power))
-                if power < zero or alpha < out_alpha.dtype(ALPHA_THRESHOLD):
+                alpha = row_alpha(splats, row, power)
+                if alpha == zero:
                     continue
                 next_T = T * (one - alpha)
                 if next_T <= min_transmittance:
                     break
-                weight = alpha * T
-                r += weight * splats[row, RED]
-                g += weight * splats[row, GREEN]
-                b += weight * splats[row, BLUE]
-                if render_depth:
-                    depth += weight * splats[row, DEPTH]
+                composited = blend_row(splats, row, alpha * T, composited, render_depth)
                 last = t
                 T = next_T
-            pixel = (camera * height + py) * width + px
-            if background.shape[0] > 0:
-                r += T * background[camera, 0]
-                g += T * background[camera, 1]
-                b += T * background[camera, 2]
-            out_color[pixel, 0] = r
-            out_color[pixel, 1] = g
-            out_color[pixel, 2] = b
-            out_alpha[pixel] = one - T
-            if render_depth:
-                out_depth[pixel] = depth / wp.max(one - T, out_alpha.dtype(MIN_ALPHA_FOR_DEPTH))
-            out_state[pixel, 0] = T
-            out_state[pixel, 1] = depth
-            out_last[pixel] = last
+            write_pixel(out_color, out_depth, out_alpha, out_state, out_last, background,
+                        (camera * height + py) * width + px, camera, composited, T, last)  # fmt: skip
 
 
 @wp.kernel(enable_backward=False, module="unique")
@@ -293,9 +272,8 @@ def composite_backward_tiles(
         positions[t] = intersection_position(splats, radii, counts, inclusive_offsets, row, corner[1], corner[2],
                                              tile_size, tiles_x, tiles_per_image // tiles_x)  # fmt: skip
     zero = grad_intersections.dtype(0.0)
-    one = grad_intersections.dtype(1.0)
     half = grad_intersections.dtype(0.5)
-    with_depth = grad_depth.shape[0] > 0
+    columns = wp.where(grad_depth.shape[0] > 0, ROW_WIDTH, DEPTH)  # no depth gradient: the last column stays 0
     x0 = corner[1] * tile_size
     y0 = corner[2] * tile_size
     count = wp.min(x0 + tile_size, width) - x0
@@ -307,33 +285,9 @@ def composite_backward_tiles(
             bit = wp.uint32(1) << wp.uint32(px - x0)
             pixel = (camera * height + py) * width + px
             last = last_index[pixel]
-            T_final = state[pixel, 0]
-            v_r = zero
-            v_g = zero
-            v_b = zero
-            v_depth = zero
-            v_alpha_out = zero
-            background_dot = zero
-            if grad_color.shape[0] > 0:
-                v_r = grad_color[pixel, 0]
-                v_g = grad_color[pixel, 1]
-                v_b = grad_color[pixel, 2]
-            if grad_alpha.shape[0] > 0:
-                v_alpha_out = grad_alpha[pixel]
-            if with_depth:
-                # as in the CUDA kernel: E = D / max(alpha, eps), dE/dalpha = -E / max(alpha, eps) where alpha >= eps
-                alpha_out = one - T_final
-                denominator = wp.max(alpha_out, grad_intersections.dtype(MIN_ALPHA_FOR_DEPTH))
-                v_depth = grad_depth[pixel] / denominator
-                if alpha_out >= grad_intersections.dtype(MIN_ALPHA_FOR_DEPTH):
-                    v_alpha_out -= grad_depth[pixel] * ((state[pixel, 1] / denominator) / denominator)
-            if background.shape[0] > 0:
-                background_dot = background[camera, 0] * v_r + background[camera, 1] * v_g + background[camera, 2] * v_b
+            T_final, upstream = pixel_upstream(state, grad_color, grad_depth, grad_alpha, background, pixel, camera)
             T = T_final
-            acc_r = zero
-            acc_g = zero
-            acc_b = zero
-            acc_depth = zero
+            behind = wp.vector(zero, zero, zero, zero)
             for step in range(listed - start):
                 j = listed - 1 - step
                 t = line_rows[j]
@@ -344,40 +298,13 @@ def composite_backward_tiles(
                 if power > skip_powers[t]:
                     continue
                 vis = wp.exp(-power)
-                opacity = splats[row, OPACITY]
-                alpha = wp.min(grad_intersections.dtype(MAX_ALPHA), opacity * vis)
+                alpha = wp.min(grad_intersections.dtype(MAX_ALPHA), splats[row, OPACITY] * vis)
                 if power < zero or alpha < grad_intersections.dtype(ALPHA_THRESHOLD):
                     continue
-                ra = one / (one - alpha)
-                T = T * ra
-                weight = alpha * T
-                c_r = splats[row, RED]
-                c_g = splats[row, GREEN]
-                c_b = splats[row, BLUE]
-                z = splats[row, DEPTH]
-                v_alpha = (c_r * T - acc_r * ra) * v_r + (c_g * T - acc_g * ra) * v_g + (c_b * T - acc_b * ra) * v_b
-                v_alpha += (z * T - acc_depth * ra) * v_depth
-                v_alpha += T_final * ra * v_alpha_out - T_final * ra * background_dot
+                g, T, behind = row_gradient(splats, row, cx, cy, vis, alpha, T, behind, upstream, T_final)
                 p = positions[t]
-                grad_intersections[p, RED] += weight * v_r
-                grad_intersections[p, GREEN] += weight * v_g
-                grad_intersections[p, BLUE] += weight * v_b
-                if with_depth:
-                    grad_intersections[p, DEPTH] += weight * v_depth
-                if opacity * vis <= grad_intersections.dtype(MAX_ALPHA):
-                    v_power = -opacity * vis * v_alpha
-                    dx = splats[row, MEAN_X] - cx
-                    dy = splats[row, MEAN_Y] - cy
-                    grad_intersections[p, MEAN_X] += v_power * (splats[row, CONIC_A] * dx + splats[row, CONIC_B] * dy)
-                    grad_intersections[p, MEAN_Y] += v_power * (splats[row, CONIC_B] * dx + splats[row, CONIC_C] * dy)
-                    grad_intersections[p, CONIC_A] += half * v_power * dx * dx
-                    grad_intersections[p, CONIC_B] += v_power * dx * dy
-                    grad_intersections[p, CONIC_C] += half * v_power * dy * dy
-                    grad_intersections[p, OPACITY] += vis * v_alpha
-                acc_r += c_r * weight
-                acc_g += c_g * weight
-                acc_b += c_b * weight
-                acc_depth += z * weight
+                for k in range(columns):
+                    grad_intersections[p, k] += g[k]
 
 
 @wp.kernel(enable_backward=False, module="unique")
