@@ -99,7 +99,11 @@ _pool_lock = threading.Lock()
 def run_concurrently(tasks: Sequence) -> None:
     """Call every task (no arguments) on :func:`~codecsplat_warp.device.cpu_threads` threads at most: this one
     and the workers of a shared pool, each taking the next task in order when it is free (so that more tasks than
-    threads balance uneven work). Returns when every task has finished; re-raises the first error."""
+    threads balance uneven work). Returns when every task has finished; re-raises the first error.
+
+    Tasks must not launch tiled kernels (``launch_tiled``): Warp's CPU kernels find their tile arena through one
+    process-wide pointer on x86-64 (its JIT has no thread-local storage), which launches on several threads at
+    once would share."""
     threads = min(cpu_threads(), len(tasks))
     if threads <= 1:
         for task in tasks:
