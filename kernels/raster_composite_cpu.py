@@ -303,8 +303,9 @@ def composite_backward_tiles(
                     continue
                 g, T, behind = row_gradient(splats, row, cx, cy, vis, alpha, T, behind, upstream, T_final)
                 p = positions[t]
-                for k in range(columns):
-                    grad_intersections[p, k] += g[k]
+                for k in range(ROW_WIDTH):  # a constant range: unrolled
+                    if k < columns:
+                        grad_intersections[p, k] += g[k]
 
 
 @wp.kernel(enable_backward=False, module="unique")
