@@ -13,13 +13,36 @@ coding, bitstream) -> :mod:`~codecsplat_warp.model` (the network) -> data, metri
 :mod:`~codecsplat_warp.eval` -> bench, demo, depth, selfcheck -> :mod:`~codecsplat_warp.cli`.
 """
 
-from .cameras import Cameras
-from .data import load_scene
-from .model.codecsplat import CodecSplat
-from .model.pretrained import load_pretrained
-from .ops.geometry import reproject_average, unproject
-from .ops.raster import rasterize
+from __future__ import annotations
+
+import importlib
 
 __version__ = "0.1.0"
 
-__all__ = ["CodecSplat", "Cameras", "load_pretrained", "load_scene", "rasterize", "unproject", "reproject_average"]
+_FRONT_DOOR = {
+    "CodecSplat": ".model.codecsplat",
+    "Cameras": ".cameras",
+    "load_pretrained": ".model.pretrained",
+    "load_scene": ".data",
+    "rasterize": ".ops.raster",
+    "unproject": ".ops.geometry",
+    "reproject_average": ".ops.geometry",
+}
+"""Each front-door name and the module that defines it, imported on first use (PEP 562), so that importing a light
+module such as :mod:`codecsplat_warp.errors` (the command line does, to answer ``--help`` at once) does not
+import torch and Warp."""
+
+__all__ = list(_FRONT_DOOR)
+
+
+def __getattr__(name: str):
+    module = _FRONT_DOOR.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module, __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_FRONT_DOOR])

@@ -30,13 +30,14 @@ EXIT_OK, EXIT_USER, EXIT_INTERNAL = 0, 1, 2
 
 BENCHMARKS = {
     "codec": "codecsplat_warp.bench.codec",
+    "crossdevice": "codecsplat_warp.bench.crossdevice",
     "extreme": "codecsplat_warp.bench.extreme",
     "geometry": "codecsplat_warp.bench.geometry",
     "leaveout": "codecsplat_warp.bench.leaveout",
     "raster": "codecsplat_warp.bench.raster",
     "report": "codecsplat_warp.bench.report",
 }
-"""``codecsplat bench NAME`` -> module with ``add_arguments(parser)`` and ``run(args) -> dict``."""
+"""``codecsplat bench NAME`` -> module with ``run(args) -> dict`` (its options: :mod:`.bench.options`)."""
 
 USER_OS_ERRORS = (FileNotFoundError, PermissionError, IsADirectoryError, NotADirectoryError, FileExistsError)
 """File-system errors caused by the paths a user gave: reported as user errors."""
@@ -56,6 +57,8 @@ def _common(parser: argparse.ArgumentParser) -> None:
                         "(default auto)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout instead of the "
                         "summary (default off)")
+    parser.add_argument("--threads", type=int, help="CPU threads for Warp and torch work (default: "
+                        "$CODECSPLAT_THREADS, else every available core)")
 
 
 def _model_options(parser: argparse.ArgumentParser) -> None:
@@ -71,10 +74,10 @@ def _number_list(kind, text: str, what: str) -> list:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .demo import DEMO_LAMBDAS, DEMO_SCENE, DEMO_SEED, DEMO_TARGET_VIEWS, PROCEDURAL
-    from .eval.evaluate import BASELINE_NAMES, PAPER_LAMBDAS
-    from .eval.protocols import PROTOCOLS
-    from .export.video import FORMATS
+    from .bench.options import ARGUMENTS as BENCHMARK_ARGUMENTS
+    from .choices import BASELINE_NAMES, DEMO_LAMBDAS, DEMO_SCENE, DEMO_SEED, DEMO_TARGET_VIEWS, PROCEDURAL
+    from .choices import FRAME_FORMATS as FORMATS
+    from .choices import PAPER_LAMBDAS, PROTOCOL_NAMES as PROTOCOLS
 
     parser = _Parser(prog="codecsplat", description="CodecSplat on NVIDIA Warp: KB-level feed-forward 3D Gaussian "
                                                     "splatting bitstreams, kernels, benchmarks and tools.")
@@ -158,16 +161,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = sub.add_parser("bench", help="benchmarks (tables on stdout, JSON with --out)")
     bench_sub = bench.add_subparsers(dest="benchmark", required=True, parser_class=_Parser)
-    for name, module in BENCHMARKS.items():
+    for name in BENCHMARKS:
         p = bench_sub.add_parser(name, help=f"{name} benchmark")
         _common(p)
         p.add_argument("--out", help="write the JSON result to this file")
-        importlib.import_module(module).add_arguments(p)
+        BENCHMARK_ARGUMENTS[name](p)
     return parser
 
 
 def _depth_parser(sub) -> None:
-    from .ops.mvs import MVSConfig
+    from .mvs_config import MVSConfig
 
     d = MVSConfig()
     depth = sub.add_parser("depth", help="multi-view stereo depth of every view of posed scenes -> 16-bit PNG depth "
@@ -211,6 +214,15 @@ def _depth_parser(sub) -> None:
 
 # --------------------------------------------------------------------------------------------------
 # Shared steps
+def _use_threads(count: int | None) -> None:
+    """Apply ``--threads`` (or its default) before a command runs (imports torch and Warp)."""
+    from .device import set_cpu_threads
+
+    if count is not None and count < 1:
+        raise UsageError(f"--threads must be a positive integer, got {count}")
+    set_cpu_threads(count)
+
+
 def _device(args):
     from .device import resolve_device
 
@@ -475,7 +487,7 @@ def _cmd_eval(args) -> int:
 
 def _cmd_depth(args) -> int:
     from .depth import DepthRun, finished_run, write_scene_depth
-    from .ops.mvs import MVSConfig
+    from .mvs_config import MVSConfig
 
     if args.max_size is not None and args.max_size < 16:
         raise UsageError(f"--max-size must be at least 16 pixels, got {args.max_size}")
@@ -538,6 +550,8 @@ def _cmd_selfcheck(args) -> int:
         print(json.dumps({k: v for k, v in result.items() if k != "table"}, indent=2))
     else:
         print(result["table"])
+        if args.device == "auto" and len(devices) == 1:
+            print("\nno CUDA GPU found: the CPU was checked alone")
         print("\nselfcheck: " + ("all kernels agree with their float64 references" if result["ok"] else "FAILED"))
     return EXIT_OK if result["ok"] else EXIT_INTERNAL
 
@@ -563,6 +577,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``codecsplat`` console script; returns the exit code."""
     try:
         args = build_parser().parse_args(argv)
+        _use_threads(args.threads)
         return COMMANDS[args.command](args)
     except CodecSplatError as exc:
         print(f"codecsplat: error: {exc}", file=sys.stderr)

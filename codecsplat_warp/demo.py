@@ -30,6 +30,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .cameras import Cameras
+from .choices import DEMO_LAMBDAS, DEMO_SCENE, DEMO_SEED, DEMO_TARGET_VIEWS, PROCEDURAL
 from .codec import bytes_report, check_lambda
 from .data import load_scene, split_context_targets
 from .data.procedural import ProceduralConfig, procedural_scene
@@ -46,14 +47,6 @@ from .model.prune import prune_gaussians
 
 SHIPPED_SCENES = pathlib.Path(__file__).resolve().parent / "assets" / "scenes"
 """Scene folders shipped with the package, each usable by its folder name (``--scene NAME``)."""
-
-PROCEDURAL = "procedural"
-"""Scene name of the procedural room."""
-
-DEMO_SCENE = "nerd_mary_rose"
-DEMO_SEED = 3
-DEMO_LAMBDAS = (16.0, 128.0, 1024.0)
-DEMO_TARGET_VIEWS = 2
 
 
 @dataclass

@@ -4,7 +4,10 @@ Rules every op in this package follows (and that this module implements; argumen
 :mod:`codecsplat_warp.checks`, Warp's native sort and scan and concurrent CPU launches in
 :mod:`codecsplat_warp.ops.primitives`):
 
-* Warp is initialised once, lazily, on first use (:func:`init_warp`).
+* Warp is initialised once, lazily, on first use (:func:`init_warp`), without its CUDA driver warning on a
+  machine that has no NVIDIA driver (:func:`cuda_driver_missing` tells whether it had one).
+* CPU work runs on :func:`cpu_threads` threads (``$CODECSPLAT_THREADS``, else the available cores), torch's
+  intra-op pool included (:func:`set_cpu_threads`).
 * Every Warp launch runs on torch's *current* CUDA stream of that device (:func:`warp_scope`), so Warp
   work is ordered with the surrounding torch work without host synchronisation.
 * Tensors cross to Warp zero-copy (:func:`to_warp`): ``wp.from_torch(t.detach(), requires_grad=False)``;
@@ -19,9 +22,12 @@ Rules every op in this package follows (and that this module implements; argumen
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import functools
 import os
+import sys
+import tempfile
 import threading
 from typing import Hashable, NamedTuple, Sequence
 
@@ -46,17 +52,119 @@ if os.environ.get("CODECSPLAT_WARP_VERBOSE", "0") == "0":  # Warp logs every mod
 
 _init_lock = threading.Lock()
 _initialised = False
+_cuda_driver_missing = False
+
+CUDA_DRIVER_WARNING = "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver."
+"""The start of the line Warp's native library prints on stderr when it finds no CUDA driver, on every
+initialisation of a machine without a GPU: :func:`init_warp` keeps it off stderr."""
 
 
 def init_warp() -> None:
-    """Initialise Warp once per process (quietly). Safe to call from any op, any thread."""
-    global _initialised
+    """Initialise Warp once per process (quietly: without its CUDA driver warning, see
+    :func:`cuda_driver_missing`; anything else Warp prints on stderr is kept). Safe to call from any op, any
+    thread."""
+    global _initialised, _cuda_driver_missing
     if _initialised:
         return
     with _init_lock:
         if not _initialised:
-            wp.init()
+            with _native_stderr_without(CUDA_DRIVER_WARNING) as dropped:
+                wp.init()
+            _cuda_driver_missing = bool(dropped)
             _initialised = True
+
+
+def cuda_driver_missing() -> bool:
+    """Whether Warp found no CUDA driver when it was initialised (a machine without an NVIDIA GPU); initialises
+    Warp."""
+    init_warp()
+    return _cuda_driver_missing
+
+
+@contextlib.contextmanager
+def _native_stderr_without(line_start: str):
+    """Capture what is written to file descriptor 2 (native code included) inside the block, then write it to
+    stderr without the lines that start with ``line_start``; yields the list that receives the dropped lines."""
+    dropped: list[str] = []
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with tempfile.TemporaryFile() as capture:
+            os.dup2(capture.fileno(), 2)
+            try:
+                yield dropped
+            finally:
+                sys.stderr.flush()
+                os.dup2(saved, 2)
+                capture.seek(0)
+                text = capture.read().decode(errors="replace")
+    finally:
+        os.close(saved)
+    lines = text.splitlines(keepends=True)
+    dropped.extend(line for line in lines if line.startswith(line_start))
+    kept = "".join(line for line in lines if not line.startswith(line_start))
+    if kept:
+        sys.stderr.write(kept)
+        sys.stderr.flush()
+
+
+THREADS_VARIABLE = "CODECSPLAT_THREADS"
+"""Environment variable with the number of threads CPU work uses (see :func:`cpu_threads`)."""
+
+_threads: int | None = None
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on (its affinity mask where the OS has one)."""
+    affinity = getattr(os, "sched_getaffinity", None)
+    return len(affinity(0)) if affinity is not None else os.cpu_count() or 1
+
+
+def cpu_threads() -> int:
+    """Threads the Warp launches that the ops split run on (see
+    :func:`codecsplat_warp.ops.primitives.run_concurrently`): the count of :func:`set_cpu_threads`, else
+    ``$CODECSPLAT_THREADS`` (which then sets torch's intra-op count too), else :func:`available_cores`.
+
+    Raises:
+        InputError: ``$CODECSPLAT_THREADS`` is not a positive integer.
+    """
+    global _threads
+    if _threads is None:
+        if _threads_variable() is None:
+            _threads = available_cores()
+        else:
+            set_cpu_threads()
+    return _threads
+
+
+def set_cpu_threads(count: int | None = None) -> int:
+    """Run CPU work on ``count`` threads from now on (None: ``$CODECSPLAT_THREADS``, else the available cores): the
+    Warp launches that the ops split and torch's intra-op pool alike. Either runs while the other waits, so the two
+    never take more cores than this between them. Returns the count.
+
+    Raises:
+        InputError: ``count`` (or ``$CODECSPLAT_THREADS``) is not a positive integer.
+    """
+    global _threads
+    if count is None:
+        count = _threads_variable() or available_cores()
+    elif isinstance(count, bool) or not isinstance(count, int) or count < 1:
+        raise InputError(f"the thread count must be a positive integer, got {count!r}")
+    if torch.get_num_threads() != count:
+        torch.set_num_threads(count)
+    _threads = count
+    return count
+
+
+def _threads_variable() -> int | None:
+    """``$CODECSPLAT_THREADS`` as a positive int, None when unset or empty; InputError for anything else."""
+    text = os.environ.get(THREADS_VARIABLE, "").strip()
+    if not text:
+        return None
+    count = int(text) if text.isdigit() else 0
+    if count < 1:
+        raise InputError(f"${THREADS_VARIABLE} must be a positive integer, got {text!r}")
+    return count
 
 
 def warp_dtype(dtype: torch.dtype):

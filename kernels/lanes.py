@@ -2,7 +2,8 @@
 
 Warp's CPU backend runs a tiled launch with one lane per block and a plain launch one thread at a time, so on
 the CPU every helper reduces over a single lane: :func:`warp_sum`, :func:`warp_max` and :func:`warp_any` return
-their argument, :func:`warp_append` is an atomic increment. On CUDA they act on the lanes of the calling
+their argument, :func:`warp_append` is an atomic increment. :func:`atomic_increment` counts atomically on both (Warp's
+own CPU atomics are plain adds, wrong for launches that several CPU threads run at once). On CUDA they act on the lanes of the calling
 thread's 32-thread warp (a partial last warp of a block included).
 """
 
@@ -100,6 +101,22 @@ def warp_append(counters: wp.array(dtype=wp.int64), slot: int) -> int:
     On CUDA the lanes of a warp that call it together claim consecutive indices with one atomic (a warp-aggregated
     append: the order within and between warps is unspecified); on the CPU it is one atomic increment. Lanes need
     not call it together."""
+    ...
+
+
+_ATOMIC_INCREMENT = """
+#if defined(__CUDA_ARCH__)
+atomicAdd(reinterpret_cast<unsigned long long*>(counters.data) + slot, 1ull);
+#else
+__atomic_fetch_add(counters.data + slot, static_cast<wp::int64>(1), __ATOMIC_RELAXED);
+#endif
+"""
+
+
+@wp.func_native(_ATOMIC_INCREMENT)
+def atomic_increment(counters: wp.array(dtype=wp.int64), slot: int):
+    """Add 1 to ``counters[slot]`` atomically on the CPU too, where ``wp.atomic_add`` is a plain add (a CPU launch
+    runs on one thread; launches that several threads run at once must not lose counts)."""
     ...
 
 

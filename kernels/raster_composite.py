@@ -75,6 +75,126 @@ def gaussian_power(rows: Any, t: int, px: Any, py: Any):
     return type(px)(0.5) * (rows[t, CONIC_A] * dx * dx + rows[t, CONIC_C] * dy * dy) + rows[t, CONIC_B] * dx * dy
 
 
+@wp.func
+def row_alpha(rows: Any, t: int, power: Any):
+    """Alpha of row ``t`` of ``rows`` at a pixel where its power is ``power``: ``min(MAX_ALPHA, opacity exp(-power))``,
+    or 0 where the row is skipped (``power < 0``, or alpha below ALPHA_THRESHOLD: a composited alpha is never 0)."""
+    alpha = wp.min(type(power)(MAX_ALPHA), rows[t, OPACITY] * wp.exp(-power))
+    if power < type(power)(0.0) or alpha < type(power)(ALPHA_THRESHOLD):
+        return type(power)(0.0)
+    return alpha
+
+
+@wp.func
+def blend_row(rows: Any, t: int, weight: Any, composited: Any, render_depth: bool):
+    """``composited`` (``vector(r, g, b, sum w z)``) with row ``t`` of ``rows`` added at ``weight`` (its depth only
+    with ``render_depth``)."""
+    depth = composited[3]
+    if render_depth:
+        depth += weight * rows[t, DEPTH]
+    return wp.vector(composited[0] + weight * rows[t, RED], composited[1] + weight * rows[t, GREEN],
+                     composited[2] + weight * rows[t, BLUE], depth)  # fmt: skip
+
+
+@wp.func
+def write_pixel(out_color: wp.array2d(dtype=Any), out_depth: wp.array(dtype=Any), out_alpha: wp.array(dtype=Any),
+                out_state: wp.array2d(dtype=Any), out_last: wp.array(dtype=wp.int32), background: wp.array2d(dtype=Any),
+                pixel: int, camera: int, composited: Any, T: Any, last: int):  # fmt: skip
+    """Write a composited pixel (arrays as in the forward kernels): colour over the camera's background, alpha
+    ``1 - T``, the normalised expected depth, the state the backward reads and the last contributing row."""
+    one = type(T)(1.0)
+    r = composited[0]
+    g = composited[1]
+    b = composited[2]
+    if background.shape[0] > 0:
+        r += T * background[camera, 0]
+        g += T * background[camera, 1]
+        b += T * background[camera, 2]
+    out_color[pixel, 0] = r
+    out_color[pixel, 1] = g
+    out_color[pixel, 2] = b
+    out_alpha[pixel] = one - T
+    if out_depth.shape[0] > 0:
+        out_depth[pixel] = composited[3] / wp.max(one - T, type(T)(MIN_ALPHA_FOR_DEPTH))
+    out_state[pixel, 0] = T
+    out_state[pixel, 1] = composited[3]
+    out_last[pixel] = last
+
+
+@wp.func
+def pixel_upstream(state: wp.array2d(dtype=Any), grad_color: wp.array2d(dtype=Any), grad_depth: wp.array(dtype=Any),
+                   grad_alpha: wp.array(dtype=Any), background: wp.array2d(dtype=Any), pixel: int, camera: int):  # fmt: skip
+    """The gradients that reach flat pixel ``pixel`` (of camera ``camera``) for the backward walk over its rows:
+    ``(T_final, vector(d/dr, d/dg, d/db, d/d(sum w z), d/dalpha, background . d/drgb))``, zero for an absent
+    output gradient (arrays as in the backward kernels)."""
+    zero = state.dtype(0.0)
+    one = state.dtype(1.0)
+    T_final = state[pixel, 0]
+    v_r = zero
+    v_g = zero
+    v_b = zero
+    v_depth = zero
+    v_alpha_out = zero
+    background_dot = zero
+    if grad_color.shape[0] > 0:
+        v_r = grad_color[pixel, 0]
+        v_g = grad_color[pixel, 1]
+        v_b = grad_color[pixel, 2]
+    if grad_alpha.shape[0] > 0:
+        v_alpha_out = grad_alpha[pixel]
+    if grad_depth.shape[0] > 0:
+        # expected depth E = D / max(alpha, eps): dE/dD = 1 / max(alpha, eps); dE/dalpha = -E / max(alpha, eps)
+        # where alpha >= eps (torch's clamp_min gradient), else 0
+        alpha_out = one - T_final
+        denominator = wp.max(alpha_out, state.dtype(MIN_ALPHA_FOR_DEPTH))
+        v_depth = grad_depth[pixel] / denominator
+        if alpha_out >= state.dtype(MIN_ALPHA_FOR_DEPTH):
+            v_alpha_out -= grad_depth[pixel] * ((state[pixel, 1] / denominator) / denominator)
+    if background.shape[0] > 0:
+        background_dot = background[camera, 0] * v_r + background[camera, 1] * v_g + background[camera, 2] * v_b
+    return T_final, wp.vector(v_r, v_g, v_b, v_depth, v_alpha_out, background_dot)
+
+
+@wp.func
+def row_gradient(rows: Any, t: int, cx: Any, cy: Any, vis: Any, alpha: Any, T: Any, behind: Any, upstream: Any,
+                 T_final: Any):  # fmt: skip
+    """The gradient of row ``t`` of ``rows`` at pixel centre (cx, cy), one step of the back-to-front walk: the row
+    has ``vis = exp(-power)`` and ``alpha`` there, ``T`` is the transmittance behind it and ``behind`` the
+    ``vector(r, g, b, depth)`` composited behind it (from the pixel's last row on), ``upstream`` and ``T_final``
+    as :func:`pixel_upstream` gives them. Returns ``(gradient of the row's 10 columns, T in front of the row,
+    behind with the row added)``; the geometry and opacity entries are 0 where alpha is clamped at MAX_ALPHA."""
+    zero = type(T)(0.0)
+    one = type(T)(1.0)
+    ra = one / (one - alpha)
+    T = T * ra
+    weight = alpha * T
+    c_r = rows[t, RED]
+    c_g = rows[t, GREEN]
+    c_b = rows[t, BLUE]
+    z = rows[t, DEPTH]
+    v_alpha = ((c_r * T - behind[0] * ra) * upstream[0] + (c_g * T - behind[1] * ra) * upstream[1]
+               + (c_b * T - behind[2] * ra) * upstream[2])  # fmt: skip
+    v_alpha += (z * T - behind[3] * ra) * upstream[3]
+    v_alpha += T_final * ra * upstream[4] - T_final * ra * upstream[5]
+    g = wp.vector(zero, zero, zero, zero, zero, zero, zero, zero, zero, zero)
+    g[RED] = weight * upstream[0]
+    g[GREEN] = weight * upstream[1]
+    g[BLUE] = weight * upstream[2]
+    g[DEPTH] = weight * upstream[3]
+    opacity = rows[t, OPACITY]
+    if opacity * vis <= type(T)(MAX_ALPHA):
+        v_power = -opacity * vis * v_alpha
+        dx = rows[t, MEAN_X] - cx
+        dy = rows[t, MEAN_Y] - cy
+        g[MEAN_X] = v_power * (rows[t, CONIC_A] * dx + rows[t, CONIC_B] * dy)
+        g[MEAN_Y] = v_power * (rows[t, CONIC_B] * dx + rows[t, CONIC_C] * dy)
+        g[CONIC_A] = type(T)(0.5) * v_power * dx * dx
+        g[CONIC_B] = v_power * dx * dy
+        g[CONIC_C] = type(T)(0.5) * v_power * dy * dy
+        g[OPACITY] = vis * v_alpha
+    return g, T, behind + wp.vector(c_r * weight, c_g * weight, c_b * weight, z * weight)
+
+
 FORWARD_BLOCKS_PER_SM = 4
 BACKWARD_BLOCKS_PER_SM = 4
 """CUDA blocks of 256 lanes that each compositing kernel is compiled to keep resident per multiprocessor
@@ -138,10 +258,7 @@ def composite_kernels(batch: int):
         cy = out_alpha.dtype(float(py)) + out_alpha.dtype(0.5)
         render_depth = out_depth.shape[0] > 0
         T = one
-        r = zero
-        g = zero
-        b = zero
-        depth = zero
+        composited = wp.vector(zero, zero, zero, zero)
         last = start - 1
         done = not inside
         for batch_start in range(start, end, BATCH):
@@ -151,20 +268,14 @@ def composite_kernels(batch: int):
             count = wp.min(BATCH, end - batch_start)
             if not done:
                 for t in range(count):
-                    power = gaussian_power(rows, t, cx, cy)
-                    alpha = wp.min(out_alpha.dtype(MAX_ALPHA), rows[t, OPACITY] * wp.exp(-power))
-                    if power < zero or alpha < out_alpha.dtype(ALPHA_THRESHOLD):
+                    alpha = row_alpha(rows, t, gaussian_power(rows, t, cx, cy))
+                    if alpha == zero:
                         continue
                     next_T = T * (one - alpha)
                     if next_T <= min_transmittance:
                         done = True
                         break
-                    weight = alpha * T
-                    r += weight * rows[t, RED]
-                    g += weight * rows[t, GREEN]
-                    b += weight * rows[t, BLUE]
-                    if render_depth:
-                        depth += weight * rows[t, DEPTH]
+                    composited = blend_row(rows, t, alpha * T, composited, render_depth)
                     last = batch_start + t
                     T = next_T
             finished = wp.tile_sum(wp.tile(wp.where(done, 1, 0)))
@@ -173,19 +284,8 @@ def composite_kernels(batch: int):
         if inside:
             camera = where[1]
             pixel = (camera * height + py) * width + px
-            if background.shape[0] > 0:
-                r += T * background[camera, 0]
-                g += T * background[camera, 1]
-                b += T * background[camera, 2]
-            out_color[pixel, 0] = r
-            out_color[pixel, 1] = g
-            out_color[pixel, 2] = b
-            out_alpha[pixel] = one - T
-            if render_depth:
-                out_depth[pixel] = depth / wp.max(one - T, out_alpha.dtype(MIN_ALPHA_FOR_DEPTH))
-            out_state[pixel, 0] = T
-            out_state[pixel, 1] = depth
-            out_last[pixel] = last
+            write_pixel(out_color, out_depth, out_alpha, out_state, out_last, background, pixel, camera, composited, T,
+                        last)  # fmt: skip
 
     @wp.kernel(enable_backward=False, module="unique", **_cuda_options(BACKWARD_BLOCKS_PER_SM))
     def composite_backward(
@@ -230,33 +330,12 @@ def composite_kernels(batch: int):
 
         last = start - 1
         T_final = one
-        v_r = zero
-        v_g = zero
-        v_b = zero
-        v_depth = zero
-        v_alpha_out = zero
-        background_dot = zero
+        upstream = wp.vector(zero, zero, zero, zero, zero, zero)
         if inside:
             camera = where[1]
             pixel = (camera * height + py) * width + px
             last = last_index[pixel]
-            T_final = state[pixel, 0]
-            if grad_color.shape[0] > 0:
-                v_r = grad_color[pixel, 0]
-                v_g = grad_color[pixel, 1]
-                v_b = grad_color[pixel, 2]
-            if grad_alpha.shape[0] > 0:
-                v_alpha_out = grad_alpha[pixel]
-            if grad_depth.shape[0] > 0:
-                # expected depth E = D / max(alpha, eps): dE/dD = 1 / max(alpha, eps); dE/dalpha = -E / max(alpha, eps)
-                # where alpha >= eps (torch's clamp_min gradient), else 0
-                alpha_out = one - T_final
-                denominator = wp.max(alpha_out, grad_splats.dtype(MIN_ALPHA_FOR_DEPTH))
-                v_depth = grad_depth[pixel] / denominator
-                if alpha_out >= grad_splats.dtype(MIN_ALPHA_FOR_DEPTH):
-                    v_alpha_out -= grad_depth[pixel] * ((state[pixel, 1] / denominator) / denominator)
-            if background.shape[0] > 0:
-                background_dot = background[camera, 0] * v_r + background[camera, 1] * v_g + background[camera, 2] * v_b
+            T_final, upstream = pixel_upstream(state, grad_color, grad_depth, grad_alpha, background, pixel, camera)
         # Rows after the block's largest last index contribute to no pixel of the block: the block stages none of
         # them, and a warp walks only the rows up to its own largest last index. The lanes of a warp walk the
         # same rows (so that they meet at each row's shuffle reduction); a lane past its own last row, or
@@ -266,10 +345,7 @@ def composite_kernels(batch: int):
         columns = wp.where(grad_depth.shape[0] > 0, ROW_WIDTH, DEPTH)  # no depth gradient: the last column stays 0
         leader = lane % WARP_SIZE == 0
         T = T_final
-        acc_r = zero
-        acc_g = zero
-        acc_b = zero
-        acc_depth = zero
+        behind = wp.vector(zero, zero, zero, zero)
         batch_end = block_last + 1
         while batch_end > start:
             batch_start = wp.max(start, batch_end - BATCH)
@@ -287,34 +363,7 @@ def composite_kernels(batch: int):
                 if warp_any(int(valid)) != 0:
                     g = wp.vector(zero, zero, zero, zero, zero, zero, zero, zero, zero, zero)
                     if valid:
-                        ra = one / (one - alpha)
-                        T = T * ra
-                        weight = alpha * T
-                        c_r = rows[t, RED]
-                        c_g = rows[t, GREEN]
-                        c_b = rows[t, BLUE]
-                        z = rows[t, DEPTH]
-                        v_alpha = (c_r * T - acc_r * ra) * v_r + (c_g * T - acc_g * ra) * v_g + (c_b * T - acc_b * ra) * v_b
-                        v_alpha += (z * T - acc_depth * ra) * v_depth
-                        v_alpha += T_final * ra * v_alpha_out - T_final * ra * background_dot
-                        g[RED] = weight * v_r
-                        g[GREEN] = weight * v_g
-                        g[BLUE] = weight * v_b
-                        g[DEPTH] = weight * v_depth
-                        if opacity * vis <= grad_splats.dtype(MAX_ALPHA):
-                            v_power = -opacity * vis * v_alpha
-                            dx = rows[t, MEAN_X] - cx
-                            dy = rows[t, MEAN_Y] - cy
-                            g[MEAN_X] = v_power * (rows[t, CONIC_A] * dx + rows[t, CONIC_B] * dy)
-                            g[MEAN_Y] = v_power * (rows[t, CONIC_B] * dx + rows[t, CONIC_C] * dy)
-                            g[CONIC_A] = grad_splats.dtype(0.5) * v_power * dx * dx
-                            g[CONIC_B] = v_power * dx * dy
-                            g[CONIC_C] = grad_splats.dtype(0.5) * v_power * dy * dy
-                            g[OPACITY] = vis * v_alpha
-                        acc_r += c_r * weight
-                        acc_g += c_g * weight
-                        acc_b += c_b * weight
-                        acc_depth += z * weight
+                        g, T, behind = row_gradient(rows, t, cx, cy, vis, alpha, T, behind, upstream, T_final)
                     for k in range(ROW_WIDTH):
                         g[k] = warp_sum(g[k])
                     if leader:

@@ -29,7 +29,7 @@ from typing import Any, NamedTuple
 
 import warp as wp
 
-from .lanes import CACHE_LINE_INT64, warp_append, warp_fold_range
+from .lanes import CACHE_LINE_INT64, atomic_increment, warp_append, warp_fold_range
 from .raster_row import (
     ALPHA_LEVELS, ALPHA_THRESHOLD, BLUE, CONIC_A, CONIC_B, CONIC_C, DEPTH, GREEN, MEAN_X, MEAN_Y, OPACITY, RED,
 )  # fmt: skip
@@ -179,7 +179,7 @@ def write_row(
 @wp.func
 def flag_non_finite3(v: Any, flags: wp.array(dtype=wp.int64), slot: int):
     if not (wp.isfinite(v[0]) and wp.isfinite(v[1]) and wp.isfinite(v[2])):
-        wp.atomic_add(flags, slot, wp.int64(1))
+        atomic_increment(flags, slot)
 
 
 @wp.func
@@ -191,11 +191,11 @@ def validate_gaussian(
     flag_non_finite3(mean, flags, BAD_MEANS)
     flag_non_finite3(scale, flags, BAD_SCALES)
     if not (wp.isfinite(quat[0]) and wp.isfinite(quat[1]) and wp.isfinite(quat[2]) and wp.isfinite(quat[3])):
-        wp.atomic_add(flags, BAD_QUATS, wp.int64(1))
+        atomic_increment(flags, BAD_QUATS)
     elif quat_scale(quat) == type(opacity)(0.0):
-        wp.atomic_add(flags, ZERO_QUATS, wp.int64(1))
+        atomic_increment(flags, ZERO_QUATS)
     if not wp.isfinite(opacity):
-        wp.atomic_add(flags, BAD_OPACITIES, wp.int64(1))
+        atomic_increment(flags, BAD_OPACITIES)
     for k in range(coeffs.shape[1]):
         flag_non_finite3(coeffs[n, k], flags, BAD_COLORS)
 
@@ -340,6 +340,7 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         tiles_x: int,
         tiles_y: int,
         zero_culled: int,
+        first_gaussian: int,
         splats: wp.array2d(dtype=Any),
         radii: wp.array(dtype=wp.vec2i),
         tile_counts: wp.array(dtype=wp.int64),
@@ -348,7 +349,8 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         visible_rows: wp.array(dtype=wp.int32),
         tile_ranges: wp.array(dtype=wp.vec2i),
     ):
-        """Project, cull and bin-count every (camera b, Gaussian n); launch with ``dim=(B, N)``.
+        """Project, cull and bin-count every (camera b, Gaussian n); launch with ``dim=(B, count)`` for the Gaussians
+        ``first_gaussian .. first_gaussian + count - 1`` (the CPU splits the Gaussians over threads).
 
         Args:
             means, scales: ``[N]`` 3-vectors (world units); quats: ``[N]`` wxyz 4-vectors; opacities: ``[N]`` in [0, 1].
@@ -359,6 +361,7 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
                 opacity by the blur compensation ``sqrt(det / det_blur)``.
             zero_culled: 1 to write zero rows for culled Gaussians; 0 leaves them unwritten (the rasterizer reads
                 only visible rows, and ten scattered stores per culled Gaussian cost more than the projection).
+            first_gaussian: the Gaussian of thread ``(b, 0)``.
             splats: output rows ``[B*N, 10]``; radii: ``[B*N]`` pixel radii (0 = culled);
             tile_counts: ``[B*N]`` int64 tiles touched; flags: ``[NUM_FLAGS]`` counters (initialised by
                 :func:`prepare_cameras`): validation counts and the range of the visible depths' float32 bits.
@@ -368,7 +371,8 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
             tile_ranges: ``[T]`` int32 pairs set to zero (the tile binning's output, zeroed here because this is the
                 one parallel launch before the binning; it saves a fill launch), or ``[0]``.
         """
-        b, n = wp.tid()
+        b, local = wp.tid()
+        n = first_gaussian + local
         num = means.shape[0]
         i = b * num + n
         for j in range(i, tile_ranges.shape[0], viewmats.shape[0] * num):
@@ -393,7 +397,7 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         cov2d = projected_covariance(p, camera_covariance(viewmat, quat, scale), K, width, height)
         if not (wp.isfinite(cov2d[0, 0]) and wp.isfinite(cov2d[0, 1]) and wp.isfinite(cov2d[1, 1])):
             if wp.isfinite(scale[0]) and wp.isfinite(scale[1]) and wp.isfinite(scale[2]):
-                wp.atomic_add(flags, HUGE_COVARIANCE, wp.int64(1))
+                atomic_increment(flags, HUGE_COVARIANCE)
             return
         det_orig = wp.determinant(cov2d)
         blurred = cov2d + wp.identity(n=2, dtype=type(opacity)) * eps2d

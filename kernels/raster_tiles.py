@@ -150,10 +150,12 @@ def emit_intersections(
     tiles_y: int,
     num_tiles: int,
     capacity: int,
+    first_row: int,
     keys: wp.array(dtype=Any),
     values: wp.array(dtype=wp.int32),
 ):
-    """Write the keys and values of every intersection of one projected Gaussian (one thread per row), the first
+    """Write the keys and values of every intersection of one projected Gaussian (one thread per row, from row
+    ``first_row`` on: the CPU splits the rows over threads), the first
     ``capacity`` of them, and pad the buffers from the intersection count up to ``capacity``; thread 0 also
     publishes the call's :func:`sort_key_layout` in ``flags`` at :data:`KEY_LAYOUT` (for the host).
 
@@ -172,7 +174,7 @@ def emit_intersections(
         keys: uint32 (a layout of ``bits <= 32``) or int64 output, values: int32 output (row indices; 0 for
             padding), each at least ``capacity`` long.
     """
-    i = wp.tid()
+    i = first_row + wp.tid()
     total = int(inclusive_offsets[inclusive_offsets.shape[0] - 1])
     for p in range(total + i, capacity, inclusive_offsets.shape[0]):
         keys[p] = keys.dtype(PAD_KEY)
@@ -199,6 +201,19 @@ def emit_intersections(
             keys[k] = keys.dtype((tile << depth_key_bits) | low)
             values[k] = i
             k += 1
+
+
+@wp.func
+def intersection_position(
+    splats: wp.array2d(dtype=Any), radii: wp.array(dtype=wp.vec2i), counts: wp.array(dtype=wp.int64),
+    inclusive_offsets: wp.array(dtype=wp.int64), row: int, tx: int, ty: int, tile_size: int, tiles_x: int,
+    tiles_y: int,
+):  # fmt: skip
+    """The position at which :func:`emit_intersections` writes the intersection of projected row ``row`` with tile
+    ``(tx, ty)`` of the row's image: a row's intersections follow its tile rectangle row by row, from
+    ``inclusive_offsets[row] - counts[row]`` on."""
+    rect = tile_rect(splats[row, MEAN_X], splats[row, MEAN_Y], radii[row], tile_size, tiles_x, tiles_y)
+    return int(inclusive_offsets[row] - counts[row]) + (ty - rect[1]) * (rect[2] - rect[0]) + tx - rect[0]
 
 
 @wp.func

@@ -8,6 +8,7 @@ import json
 import torch
 
 from codecsplat_warp.bench import report
+from codecsplat_warp.bench.options import report_arguments
 
 
 def test_pareto_front_of_a_known_toy_set():
@@ -38,7 +39,7 @@ def _dominated(row: dict, rows: list[dict]) -> bool:
 def _args(*argv: str) -> argparse.Namespace:
     parser = argparse.ArgumentParser()
     parser.add_argument("--device", default="cpu")
-    report.add_arguments(parser)
+    report_arguments(parser)
     return parser.parse_args(list(argv))
 
 

@@ -93,3 +93,26 @@ def test_image_metrics_with_lpips_weights_scores_identical_images_zero():
     assert same["lpips_vgg"] == pytest.approx([0.0], abs=1e-6) and same["lpips_alex"] == pytest.approx([0.0], abs=1e-6)
     noisy = metrics((target + 0.2 * torch.randn(target.shape)).clamp(0, 1), target)
     assert noisy["lpips_vgg"][0] > 0.02 and noisy["lpips_alex"][0] > 0.02
+
+
+@needs_lpips
+def test_image_metrics_reuse_a_targets_lpips_features_only_while_it_is_unchanged():
+    """Scoring several predictions against one target computes its LPIPS features once; an in-place change of the
+    target (a new version) or another tensor computes them again."""
+    from codecsplat_warp.metrics import LPIPS
+
+    metrics = ImageMetrics(LPIPS_WEIGHTS)
+    g = torch.Generator().manual_seed(3)
+    target, first, second = (torch.rand(2, 3, 40, 48, generator=g) for _ in range(3))
+    fresh = {net: LPIPS(net, LPIPS_WEIGHTS) for net in ("vgg", "alex")}
+
+    def expected(prediction, reference):
+        with torch.no_grad():
+            return {f"lpips_{net}": [float(v) for v in model(prediction, reference)] for net, model in fresh.items()}
+
+    for prediction in (first, second):
+        values = metrics(prediction, target)
+        assert {k: values[k] for k in expected(prediction, target)} == expected(prediction, target)
+    target.mul_(0.5)
+    values = metrics(first, target)
+    assert {k: values[k] for k in expected(first, target)} == expected(first, target)

@@ -380,3 +380,14 @@ def test_a_real_scene_gets_depth_within_its_bounds(data_root):
     kept = out.depth[out.mask]
     assert float(out.coverage.mean()) > 0.3, out.coverage
     assert float(kept.min()) >= float(cameras.near.min()) * 0.999 and float(kept.max()) <= float(cameras.far.max())
+
+
+def test_the_config_module_and_the_kernels_agree_on_the_source_limit():
+    """MVSConfig lives in a module without torch or Warp (the command line's --help shows its defaults at once);
+    its source limit must be the kernels' vector length."""
+    from codecsplat_warp import mvs_config
+    from codecsplat_warp.kernels import mvs as mvs_kernels
+
+    assert mvs_config.MAX_SOURCES == int(mvs_kernels.MAX_SOURCES)
+    with pytest.raises(InputError, match="num_sources"):
+        MVSConfig(num_sources=mvs_config.MAX_SOURCES + 1, min_consistent_views=2)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import inspect
 import math
+import os
 import pathlib
 import struct
 import subprocess
@@ -13,6 +14,7 @@ import pytest
 import torch
 from conftest import DEVICES
 
+from codecsplat_warp.device import THREADS_VARIABLE
 from codecsplat_warp.errors import InputError, RasterMemoryError
 from codecsplat_warp.kernels import raster_tiles
 from codecsplat_warp.kernels.raster_tiles import NO_DEPTH_BITS
@@ -718,8 +720,13 @@ print("in bounds")
 def test_speculative_binning_stays_in_bounds_in_warp_debug_mode():
     """Hits and every kind of wrong guess (a too short buffer, a 32-bit key where a 64-bit one is needed, too few
     sorted bits) run with Warp's bounds checks on (in a subprocess: a failed check aborts the process). The emit
-    writes no further than the guessed capacity, tile_ranges and the compositing read only inside it."""
+    writes no further than the guessed capacity, tile_ranges and the compositing read only inside it.
+
+    On one thread: Warp's debug-mode CPU kernels check their tile arena through one process-wide pointer on x86-64
+    (native/tile.h: the JIT has no thread-local storage), which launches running at once on several threads race on;
+    release builds never read it."""
     tests = pathlib.Path(__file__).resolve().parent
+    env = {**os.environ, THREADS_VARIABLE: "1"}
     result = subprocess.run([sys.executable, "-c", _DEBUG_SPECULATION_SCRIPT, str(tests)], capture_output=True,
-                            text=True, timeout=600, cwd=tests.parent)  # fmt: skip
+                            text=True, timeout=600, cwd=tests.parent, env=env)  # fmt: skip
     assert result.returncode == 0 and "in bounds" in result.stdout, result.stderr[-2000:]

@@ -1,1 +1,2 @@
-"""Benchmarks behind ``codecsplat bench NAME``; each module exposes ``add_arguments(parser)`` and ``run(args) -> dict``."""
+"""Benchmarks behind ``codecsplat bench NAME``: each module NAME exposes ``run(args) -> dict``; their command-line
+options are in :mod:`.options` (torch-free, so that the command line answers ``--help`` at once)."""

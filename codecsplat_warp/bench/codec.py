@@ -24,7 +24,6 @@ import hashlib
 import json
 import pathlib
 import statistics
-from dataclasses import dataclass
 
 import torch
 
@@ -35,44 +34,12 @@ from ..model.codecsplat import CodecSplat, model_id
 from ..model.pretrained import load_pretrained
 from ..nn.config import get_preset
 from ..synthetic import make_rig
+from .options import CODEC_SHAPES as SHAPES
+from .options import CodecShape as Shape
 
-
-@dataclass(frozen=True)
-class Shape:
-    name: str
-    preset: str
-    views: int
-    height: int
-    width: int
-    paper_encode_s: float
-    paper_decode_s: float
-
-
-SHAPES = {
-    "re10k": Shape("re10k", "re10k", 2, 256, 256, 0.062, 0.059),
-    "dl3dv": Shape("dl3dv", "dl3dv", 8, 256, 448, 0.267, 0.273),
-}
 
 LAMBDA = 128.0
 """Rate point of the timed runs (the coding time hardly depends on it)."""
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--shapes", default=",".join(SHAPES), help=f"comma list of {', '.join(SHAPES)} (default %(default)s)")
-    parser.add_argument("--reps", type=int, default=None, help="timed repetitions (default: 20 on CUDA, 3 on CPU)")
-    parser.add_argument("--checkpoint", default=None, help="pretrained model file (default: seeded random weights)")
-    parser.add_argument("--posterior-gain", type=float, default=10.0,
-                        help="scale of the random model's posterior, for realistic symbol counts without training "
-                             "(default %(default)g)")
-    parser.add_argument("--no-cpu-check", action="store_true",
-                        help="on CUDA, skip decoding each bitstream with a CPU copy of the model in this process "
-                             "(for machines whose Warp cannot compile CPU kernels; use --write-bitstream and "
-                             "--decode-bitstream on another machine instead)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random model and inputs (default %(default)s)")
-    parser.add_argument("--write-bitstream", default=None, metavar="DIR",
-                        help="write each shape's bitstream and symbol record to DIR")
-    parser.add_argument("--decode-bitstream", default=None, metavar="FILE",
-                        help="only decode FILE (from --write-bitstream) on --device and check its symbols")
 
 
 def run(args: argparse.Namespace) -> dict:

@@ -46,6 +46,7 @@ from ..ops.raster import GAUSSIAN_ARGUMENTS, rasterize
 from ..reference.geometry import cost_volume_reference, reproject_average_reference, unproject_reference
 from ..reference.raster import rasterize_dense
 from ..synthetic import make_rig, random_gaussians, rotation, smooth_depth
+from .options import extreme_arguments
 
 # --------------------------------------------------------------------------------------------------
 # Catalog data structures
@@ -824,10 +825,6 @@ COLUMNS = [
 
 # --------------------------------------------------------------------------------------------------
 # Command line (``python -m codecsplat_warp.bench.extreme``; also usable as a ``codecsplat bench`` module)
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--cases", default="", help="comma list of substrings; run only the cases whose name has one (default: every case)")
-
-
 def run(args: argparse.Namespace) -> dict:
     device = torch.device(args.device)
     wanted = [w for w in args.cases.split(",") if w]
@@ -852,7 +849,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", help="write the JSON result to this file (default: none)")
     parser.add_argument("--json", action="store_true", help="print the JSON result on stdout, the table on stderr "
                         "(default off)")
-    add_arguments(parser)
+    extreme_arguments(parser)
     return parser
 
 
@@ -863,7 +860,12 @@ def main(argv: list[str] | None = None) -> int:
     """
     from ..device import resolve_device
 
-    args = build_parser().parse_args(argv)
+    parser = argparse.ArgumentParser(prog="python -m codecsplat_warp.bench.extreme", description=__doc__.split("\n")[0])
+    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (CUDA when available)")
+    parser.add_argument("--out", help="write the JSON result to this file")
+    parser.add_argument("--json", action="store_true", help="print the JSON result on stdout (table on stderr)")
+    extreme_arguments(parser)
+    args = parser.parse_args(argv)
     args.device = str(resolve_device(args.device))
     result = run(args)
     if args.out:

@@ -9,7 +9,6 @@ result against a float64 evaluation of the same op (max abs of the output; relat
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass
 
 import torch
 
@@ -19,34 +18,11 @@ from ..measure import cuda_peak_bytes, format_table, machine_name, rss_peak_grow
 from ..ops.geometry import all_other_views, reproject_average
 from ..reference.geometry import reproject_average_reference
 from ..synthetic import make_rig, smooth_depth
+from .options import GEOMETRY_SHAPES as SHAPES
+from .options import GeometryShape as Shape
 
-
-@dataclass(frozen=True)
-class Shape:
-    name: str
-    views: int
-    channels: int
-    grid_h: int
-    grid_w: int
-    image_h: int
-    image_w: int
-
-
-SHAPES = {
-    "re10k-64": Shape("re10k-64", 2, 64, 64, 64, 256, 256),
-    "re10k-256": Shape("re10k-256", 2, 64, 256, 256, 256, 256),
-    "dl3dv-64": Shape("dl3dv-64", 8, 64, 64, 112, 256, 448),
-    "dl3dv-256": Shape("dl3dv-256", 8, 64, 256, 448, 256, 448),
-}
 
 IMPLEMENTATIONS = ("warp", "torch")
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--shapes", default=",".join(SHAPES), help=f"comma list of {', '.join(SHAPES)} (default %(default)s)")
-    parser.add_argument("--reps", type=int, default=None, help="timed repetitions (default: 30 on CUDA, 3 on CPU)")
-    parser.add_argument("--validate", choices=("on", "off"), default="on",
-                        help="finite/positive input checks (one host sync per call; on by default, as for users)")
 
 
 def run(args: argparse.Namespace) -> dict:

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import os
 import sys
 
 import torch
@@ -47,6 +46,7 @@ from ..measure import cuda_kernel_ms, format_table, interleaved_medians, machine
 from ..model.pretrained import load_pretrained
 from ..model.prune import prune_gaussians
 from ..ops.raster import GAUSSIAN_ARGUMENTS, project_gaussians, rasterize
+from .options import LEAVEOUT_DEFAULT_SCENES as DEFAULT_SCENES
 from .raster import WORKLOADS, Workload, make_scene, ours_forward, ours_forward_backward
 
 OFFSCREEN_FRACTION = 0.9
@@ -59,29 +59,8 @@ RENDER_TOLERANCE = 1e-5
 NAIVE_VIEW_SLOTS = 8
 """View slots of the naive fixed layout (as many as the scene has views when it has more)."""
 
-DEFAULT_SCENES = 3
-"""Scenes measured by default: evenly spread over the sorted scene folders of ``--data``."""
-
 QUICK_PROTOCOL = Protocol("quick", 32, 32, 2, target_views=2)
 QUICK_WORKLOAD = Workload("quick", 2, 32, 32)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", default=os.environ.get("CODECSPLAT_DATA"),
-                        help="folder of real scenes (default $CODECSPLAT_DATA)")
-    parser.add_argument("--scenes", default=None,
-                        help=f"comma list of scene folder names (default: {DEFAULT_SCENES} spread over --data)")
-    parser.add_argument("--checkpoint", default=None, help="pretrained model file (default: the shipped model)")
-    parser.add_argument("--lambda", dest="lam", type=float, default=128.0, help="rate trade-off of the encodes, in [16, 1024] (default %(default)g)")
-    parser.add_argument("--reps", type=int, default=None, help="timed repetitions (default: 20 on CUDA, 3 on CPU)")
-    parser.add_argument("--scale", type=float, default=None,
-                        help="fraction of the raster scene's Gaussians kept in b and c (default: 1 on CUDA, "
-                             "0.25 on CPU)")
-    parser.add_argument("--max-views", type=int, default=None,
-                        help="largest context view count of the 2..N encodes in d (default: 8 on CUDA, 4 on CPU)")
-    parser.add_argument("--offscreen-workload", choices=sorted(WORKLOADS), default="re10k",
-                        help="bench raster workload of the off-screen measurement b (default: re10k)")
-    parser.add_argument("--quick", action="store_true", help="tiny sizes and one repetition (CI, CPU smoke test)")
 
 
 def run(args: argparse.Namespace) -> dict:

@@ -13,6 +13,11 @@ peak RSS growth in a fresh process), intersection count, and -- on CUDA with gsp
 gsplat's ``rasterization(packed=False, render_mode="RGB+ED")`` on the same inputs, its times (ours and gsplat's
 calls timed in interleaved rounds) and the PSNR of our RGB against its RGB. A small scene is also compared with
 the dense torch reference (time and max error).
+On the CPU (gsplat has no CPU rasterizer) each workload is timed, in interleaved rounds, in three ways: the tile
+layout on one thread and on every thread of ``--threads`` (default: every available core), and the block layout on
+one thread, the CUDA kernels run with one-lane blocks (the CPU rasterizer before the tile layout, see
+:data:`~codecsplat_warp.ops.raster.CPU_LAYOUTS`), against which the speed-ups are given; peak memory is that of the
+tile layout on every thread.
 ``--scale`` keeps a random fraction of the Gaussians (quick CPU runs). ``--kernels N`` (CUDA) also lists the N
 kernels with the most GPU time per call for ours and gsplat's forward and forward+backward, from
 ``torch.profiler`` (stored per workload under ``kernels``).
@@ -22,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import traceback
-from dataclasses import dataclass
 
 import torch
 import warp as wp
@@ -31,37 +35,16 @@ from ..measure import (
     cuda_kernel_times, cuda_peak_bytes, format_table, interleaved_medians, machine_name, rss_peak_growth_bytes,
     time_call,
 )  # fmt: skip
+from ..device import cpu_threads, set_cpu_threads
 from ..metrics.image import psnr
-from ..ops.raster import GAUSSIAN_ARGUMENTS, rasterize
+from ..ops.raster import GAUSSIAN_ARGUMENTS, cpu_layout, rasterize
 from ..reference.raster import rasterize_dense
 from ..synthetic import make_rig, smooth_depth
+from .options import WORKLOADS, Workload
 
-
-@dataclass(frozen=True)
-class Workload:
-    name: str
-    views: int
-    height: int
-    width: int
-
-
-WORKLOADS = {
-    "re10k": Workload("re10k", 2, 256, 256),
-    "dl3dv": Workload("dl3dv", 8, 256, 448),
-}
 
 REFERENCE_WORKLOAD = Workload("dense-ref", 1, 40, 40)
 """Small scene (1,600 Gaussians, 40x40) where the dense O(HWN) torch reference is affordable."""
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--workloads", default="re10k,dl3dv", help=f"comma list of {', '.join(WORKLOADS)} (default %(default)s)")
-    parser.add_argument("--reps", type=int, default=None, help="timed repetitions (default: 30 on CUDA, 3 on CPU)")
-    parser.add_argument("--scale", type=float, default=1.0, help="fraction of the Gaussians kept, 0 < scale <= 1 (default %(default)g)")
-    parser.add_argument("--no-gsplat", action="store_true", help="skip gsplat even when it is importable")
-    parser.add_argument("--kernels", type=int, default=0, metavar="N",
-                        help="CUDA: also list the N kernels with the most GPU time per call, ours and gsplat's "
-                             "(default %(default)s: none)")
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -75,13 +58,16 @@ def run(args: argparse.Namespace) -> dict:
     for name in args.workloads.split(","):
         if name not in WORKLOADS:
             raise ValueError(f"unknown workload {name!r}; choose from {', '.join(WORKLOADS)}")
-        rows.append(measure_workload(WORKLOADS[name], device, reps, scale, gsplat))
+        if device.type == "cpu":
+            rows += measure_cpu_layouts(WORKLOADS[name], reps, scale)
+        else:
+            rows.append(measure_workload(WORKLOADS[name], device, reps, scale, gsplat))
         _print_row(rows[-1])
         if getattr(args, "kernels", 0) and device.type == "cuda":
             rows[-1]["kernels"] = measure_kernels(WORKLOADS[name], device, reps, scale, gsplat, args.kernels)
     reference = measure_reference(device, reps)
     machine = machine_name(device)
-    table = format_table(rows, COLUMNS)
+    table = format_table(rows, CPU_COLUMNS if device.type == "cpu" else COLUMNS)
     ref_table = format_table([reference], REFERENCE_COLUMNS)
     gsplat_note = "gsplat: " + (gsplat["status"] if gsplat else "skipped (--no-gsplat)")
     print(f"\nrasterize, float32, {machine}\n{gsplat_note}\n{table}\n\ndense torch reference, small scene\n{ref_table}")
@@ -107,6 +93,23 @@ COLUMNS = [
     ("ratio_fwd_bwd", "fwd+bwd / gsplat", ".2f"),
     ("psnr_vs_gsplat_db", "PSNR vs gsplat dB", ".1f"),
 ]
+
+CPU_COLUMNS = [
+    ("workload", "workload", "s"),
+    ("gaussians", "Gaussians", ",d"),
+    ("size", "image", "s"),
+    ("intersections", "intersections", ",d"),
+    ("layout", "layout", "s"),
+    ("threads", "threads", "d"),
+    ("fwd_ms", "fwd ms", ".1f"),
+    ("fwd_bwd_ms", "fwd+bwd ms", ".1f"),
+    ("fwd_speedup", "fwd speed-up", ".1f"),
+    ("fwd_bwd_speedup", "fwd+bwd speed-up", ".1f"),
+    ("peak_mib", "peak MiB", ".1f"),
+]
+
+BASELINE_LAYOUT = "blocks"
+"""The CPU layout the speed-ups are given against (on one thread): the CPU rasterizer before the tile layout."""
 
 REFERENCE_COLUMNS = [
     ("gaussians", "Gaussians", ",d"),
@@ -229,6 +232,53 @@ def measure_workload(workload: Workload, device: torch.device, reps: int, scale:
     return row
 
 
+def measure_cpu_layouts(workload: Workload, reps: int, scale: float) -> list[dict]:
+    """CPU rows of ``workload``: the tile layout on one thread and on :func:`~codecsplat_warp.device.cpu_threads`
+    threads, the block layout on one thread, each timed forward and forward+backward in interleaved rounds, with
+    speed-ups against the block layout; errors are recorded, not raised."""
+    device = torch.device("cpu")
+    scene = make_scene(workload, device, scale)
+    threads = cpu_threads()
+    configs = [("tiles", 1), ("tiles", threads), (BASELINE_LAYOUT, 1)] if threads > 1 else \
+        [("tiles", 1), (BASELINE_LAYOUT, 1)]  # fmt: skip
+    common = {"workload": workload.name, "gaussians": scene["means"].shape[0], "size": f"{workload.height}x{workload.width}",
+              "reps": reps}  # fmt: skip
+    calls = {}
+    for layout, count in configs:
+        for key, fn in (("fwd_ms", ours_forward), ("fwd_bwd_ms", ours_forward_backward)):
+            calls[layout, count, key] = _configured(fn, scene, layout, count)
+    try:
+        common["intersections"] = calls["tiles", threads, "fwd_ms"]()[3].intersection_count
+        peak = rss_peak_growth_bytes(calls["tiles", threads, "fwd_bwd_ms"]) / 2**20  # before freed memory piles up
+        medians = interleaved_medians(calls, device, reps)
+    except Exception as exc:  # noqa: BLE001 - a benchmark reports failures and goes on
+        traceback.print_exc()
+        return [{**common, "error": f"warp: {type(exc).__name__}: {exc}"}]
+    finally:
+        set_cpu_threads(threads)
+    rows = []
+    for layout, count in configs:
+        row = {**common, "layout": layout, "threads": count, "fwd_ms": medians[layout, count, "fwd_ms"],
+               "fwd_bwd_ms": medians[layout, count, "fwd_bwd_ms"]}  # fmt: skip
+        for key in ("fwd", "fwd_bwd"):
+            row[f"{key}_speedup"] = medians[BASELINE_LAYOUT, 1, f"{key}_ms"] / row[f"{key}_ms"]
+        if (layout, count) == ("tiles", threads):
+            row["peak_mib"] = peak
+        rows.append(row)
+    return rows
+
+
+def _configured(fn, scene: dict, layout: str, threads: int):
+    """``fn(scene)`` in CPU layout ``layout`` on ``threads`` threads."""
+
+    def call():
+        set_cpu_threads(threads)
+        with cpu_layout(layout):
+            return fn(scene)
+
+    return call
+
+
 def measure_kernels(workload: Workload, device: torch.device, reps: int, scale: float, gsplat: dict | None,
                     top: int) -> dict:  # fmt: skip
     """Per-kernel GPU time of ours (and gsplat's) forward and forward+backward on ``workload``
@@ -309,6 +359,7 @@ def _peak_memory(device: torch.device, scene: dict) -> dict:
 
 
 def _print_row(row: dict) -> None:
+    """Print a row as it is measured (the last CPU row of a workload stands for its rows)."""
     if "error" in row:
         print(f"  {row['workload']}: {row['error']}", flush=True)
     text = "  ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items() if k != "error")

@@ -60,6 +60,7 @@ from .extreme import COST_VOLUME, RASTERIZE, REPROJECT, UNPROJECT, Op, Problem, 
 from .extreme import forward_backward as _forward_backward
 from .extreme import reference_arguments
 from .geometry import SHAPES, Shape
+from .options import REPORT_KERNELS as KERNELS
 from .raster import Workload, make_scene
 
 DENSE_REFERENCE_LIMIT = 20_000_000
@@ -97,7 +98,6 @@ RASTER_SIZES = {
 """Scene sizes of the rasterizer: pixel-aligned Gaussians of ``views`` context views rendered into one
 ``height`` x ``width`` target (``bench raster``'s workloads; tiny has 576 Gaussians, small 2,304)."""
 
-KERNELS = ("unproject", "reproject_average", "plane_sweep_cost_volume", "rasterize")
 
 
 @dataclass(frozen=True)
@@ -542,19 +542,6 @@ def _commit() -> str:
 
 # --------------------------------------------------------------------------------------------------
 # Command
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out-dir", default="bench-report", help="folder for report.json, report.md, pareto.png (default %(default)s)")
-    parser.add_argument("--quick", action="store_true", help="a small set on tiny sizes (under 2 min on a 2-core CPU)")
-    parser.add_argument("--devices", default=None, help="comma list of devices to compare (default: --device)")
-    parser.add_argument("--kernels", default=",".join(KERNELS), help=f"comma list of {', '.join(KERNELS)} (default: all)")
-    parser.add_argument("--sizes", default=None, help="comma list of scene sizes to keep (default: all of the mode)")
-    parser.add_argument("--dtypes", default="float32,float64", help="comma list of float32, float64 (default: both)")
-    parser.add_argument("--reps", type=int, default=None,
-                        help="timed repetitions (default: 20 on CUDA, 5 on CPU, 3 with --quick)")
-    parser.add_argument("--checkpoint", default=None, help="pretrained codec model (default: the shipped one)")
-    parser.add_argument("--no-codec", action="store_true", help="leave the codec out")
-
-
 def run(args: argparse.Namespace) -> dict:
     from tqdm import tqdm
 

@@ -52,6 +52,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..baselines import FeatureDeflate, PlyDeflate, PngCompression
+from ..choices import BASELINE_NAMES, PAPER_LAMBDAS
 from ..codec import bytes_report, check_lambda
 from ..errors import DataError, InputError
 from ..export.files import write_json, write_text
@@ -66,11 +67,6 @@ from .protocols import (PROTOCOLS, Protocol, Sample, SamplePlan, chunk_plan, eag
                         is_chunk_folder, nearest_context_images, scene_samples, select_scenes)
 from .report import (BACKBONE, CODECSPLAT, COPY_NEAREST, Row, format_bytes, markdown_report, plot_comparison,
                      plot_distortion_vs_time, plot_rate_distortion, summarize, table1, table2, table3)
-
-BASELINE_NAMES = ("ply", "png", "feature")
-"""Baselines ``--baselines`` may name: (a) PLY + Deflate, (b) PNG, (c) float16 feature + Deflate."""
-
-PAPER_LAMBDAS = (16.0, 32.0, 64.0, 128.0, 256.0, 512.0, 1024.0)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -16,11 +16,12 @@ import numpy as np
 import torch
 
 from ..cameras import Cameras
+from ..choices import FRAME_FORMATS
 from ..data.procedural import look_at
 from ..errors import InputError
 from .files import atomic_output
 
-FORMATS = ("png", "gif", "mp4")
+FORMATS = FRAME_FORMATS
 """Output formats of :func:`write_frames`."""
 
 MP4_PLUGINS = (("imageio_ffmpeg", "FFMPEG"), ("av", "pyav"))

@@ -17,6 +17,7 @@ All functions take batches [B,3,H,W] of floats in [0,1] and return one value per
 from __future__ import annotations
 
 import os
+import weakref
 
 import kornia
 import torch
@@ -89,6 +90,7 @@ class ImageMetrics:
         self.device = torch.device(device)
         self.lpips: dict[str, LPIPS] = {}
         self.lpips_missing: str | None = None
+        self._target_cache: dict[str, tuple] = {}
         try:
             folder = resolve_weights_dir(lpips_weights)
         except InputError as exc:
@@ -99,9 +101,20 @@ class ImageMetrics:
 
     def __call__(self, prediction: torch.Tensor, target: torch.Tensor) -> dict[str, list[float]]:
         """Per-image values {name: [B floats]} of prediction vs target [B,3,H,W] in [0,1] (LPIPS keys only
-        when weights are loaded)."""
+        when weights are loaded). The LPIPS features of the last target are kept while that tensor lives
+        unchanged: a demo or an evaluation scores several methods against one target in a row."""
         values = {"psnr": psnr(prediction, target), "ssim": ssim(prediction, target)}
         with torch.no_grad():
             for net, model in self.lpips.items():
-                values[f"lpips_{net}"] = model(prediction.clamp(0.0, 1.0).to(self.device), target.to(self.device))
+                x, _ = model.check_images(prediction.clamp(0.0, 1.0).to(self.device), target.to(self.device))
+                values[f"lpips_{net}"] = model.distance(model.unit_features(x), self._target_units(net, target))
         return {name: [float(v) for v in value] for name, value in values.items()}
+
+    def _target_units(self, net: str, target: torch.Tensor) -> list[torch.Tensor]:
+        """LPIPS ``net``'s unit features of ``target``, reused while it is the same tensor at the same version."""
+        cached = self._target_cache.get(net)
+        if cached is not None and cached[0]() is target and cached[1] == target._version:
+            return cached[2]
+        units = self.lpips[net].unit_features(target.to(self.device))
+        self._target_cache[net] = (weakref.ref(target), target._version, units)
+        return units

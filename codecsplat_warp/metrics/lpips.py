@@ -112,17 +112,33 @@ class LPIPS(nn.Module):
 
         Computed in float32 whatever the input dtype or autocast state.
         """
+        x, y = self.check_images(x, y)
+        return self.distance(self.unit_features(x), self.unit_features(y))
+
+    def check_images(self, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``x, y`` checked as :meth:`forward` takes them (InputError / DeviceMismatchError otherwise)."""
         dims: dict[str, int] = {}
         x = check_tensor("x", x, ("B", 3, "H", "W"), (torch.float32, torch.float64, torch.bfloat16, torch.float16), dims)
         y = check_tensor("y", y, ("B", 3, "H", "W"), (torch.float32, torch.float64, torch.bfloat16, torch.float16), dims)
         common_device(x=x, y=y, weights=self.shift)
-        with torch.autocast(x.device.type, enabled=False):
-            fx, fy = self._normalize(x), self._normalize(y)
-            total = torch.zeros(x.shape[0], device=x.device, dtype=torch.float32)
-            for stage, lin in zip(self.stages, self.lins):
-                fx, fy = stage(fx), stage(fy)
-                diff = (_unit(fx) - _unit(fy)) ** 2
-                total = total + lin(diff).mean(dim=(1, 2, 3))
+        return x, y
+
+    def unit_features(self, images: torch.Tensor) -> list[torch.Tensor]:
+        """The unit-normalised features of every trunk stage of ``images`` [B,3,H,W] in [0,1] (float32, autocast
+        off): one side of :meth:`distance`, which a caller comparing many images with one target computes once."""
+        with torch.autocast(images.device.type, enabled=False):
+            features, units = self._normalize(images), []
+            for stage in self.stages:
+                features = stage(features)
+                units.append(_unit(features))
+        return units
+
+    def distance(self, x_units: list[torch.Tensor], y_units: list[torch.Tensor]) -> torch.Tensor:
+        """Per-image distance [B] between two images' :meth:`unit_features`."""
+        total = torch.zeros(x_units[0].shape[0], device=x_units[0].device, dtype=torch.float32)
+        with torch.autocast(x_units[0].device.type, enabled=False):
+            for lin, fx, fy in zip(self.lins, x_units, y_units):
+                total = total + lin((fx - fy) ** 2).mean(dim=(1, 2, 3))
         return total
 
     def _normalize(self, images: torch.Tensor) -> torch.Tensor:

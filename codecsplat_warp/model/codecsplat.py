@@ -20,8 +20,10 @@ header, and decoding with another model raises BitstreamError naming both.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
+from typing import Iterator
 
 import numpy as np
 import torch
@@ -50,6 +52,9 @@ RENDER_NEAR_FRACTION = 0.5
 
 RENDER_FAR_FACTOR = 2.0
 """... and those farther than this multiple of its far bound."""
+
+DECODE_PRECISIONS = ("float32", "bfloat16")
+"""Precisions :meth:`CodecSplat.decode_scene` runs its network part in; float32 is the default."""
 
 
 class CodecSplat(nn.Module):
@@ -185,20 +190,29 @@ class CodecSplat(nn.Module):
         return self.encode_scene(images, cameras, lam).data
 
     @torch.no_grad()
-    def decode_scene(self, data: bytes, device=None, timer: Timer = no_timer) -> DecodedScene:
+    def decode_scene(self, data: bytes, device=None, timer: Timer = no_timer,
+                     precision: str = "float32") -> DecodedScene:  # fmt: skip
         """Decoder (§3.5): bitstream -> latents -> F^_c -> depth head -> R_post -> GS head -> Gaussians.
 
-        Uses only the bitstream (cameras, lambda, latents). Runs on the model's device (bf16 autocast on
-        CUDA outside the float64 prior path). ``timer`` times ``bitstream`` (parsing) and ``entropy``.
+        Uses only the bitstream (cameras, lambda, latents). Runs on the model's device, in the model's float dtype
+        whatever autocast the caller runs under, so that every device decodes a bitstream to the same Gaussians
+        up to float32 rounding (the latents are bit-exact on every device; the float64 prior path is fixed).
+        ``timer`` times ``bitstream`` (parsing) and ``entropy``.
 
         Args:
             data: a bitstream written by :meth:`encode` with this model.
             device: where to decode; None for the model's device, otherwise it must be that device.
+            precision: ``"float32"``, or ``"bfloat16"`` to run the network part under bf16 autocast (an opt-in
+                for speed on a GPU: its Gaussians differ from the float32 decode's, means by up to ~0.3 world
+                units on real scenes, so another device's decode no longer matches it).
         Raises:
             BitstreamError: truncated, corrupt, foreign (another model's), or newer-version input.
             DeviceMismatchError: ``device`` is not the model's device.
+            InputError: an unknown ``precision``.
         """
         self._require_codec()
+        if precision not in DECODE_PRECISIONS:
+            raise InputError(f"precision must be one of {DECODE_PRECISIONS}, got {precision!r}")
         param = next(self.parameters())
         if device is not None and not _same_device(resolve_device(device), param.device):
             raise DeviceMismatchError(f"decode on {resolve_device(device)} needs the model there (it is on "
@@ -211,7 +225,8 @@ class CodecSplat(nn.Module):
                                      f"{expected}: decode it with the model that encoded it")
         cameras = parsed.cameras.to(param.device, param.dtype)
         grid_h, grid_w = cameras.height // FEATURE_STRIDE, cameras.width // FEATURE_STRIDE
-        with torch.autocast(param.device.type, dtype=torch.bfloat16, enabled=param.device.type == "cuda"):
+        full_float32 = _without_tf32() if precision == "float32" else contextlib.nullcontext()
+        with full_float32, torch.autocast(param.device.type, dtype=torch.bfloat16, enabled=precision == "bfloat16"):
             feature, latents = self.codec.decompress(parsed.feature_streams, grid_h, grid_w, parsed.header.lam, timer)
             _, depth, gaussians = self.decode_feature(feature, cameras)
         return DecodedScene(gaussians=gaussians, cameras=cameras, depth=depth, lam=parsed.header.lam,
@@ -269,6 +284,18 @@ class CodecSplat(nn.Module):
         if bool(images.min() < 0) or bool(images.max() > 1):
             raise InputError("images must hold values in [0, 1]")
         return images.to(param.dtype)
+
+
+@contextlib.contextmanager
+def _without_tf32() -> Iterator[None]:
+    """Float32 convolutions and matmuls on CUDA in full float32 inside the block: cuDNN takes TF32 (10 mantissa
+    bits) for float32 convolutions by default, which would move a CUDA decode away from the CPU's by ~1e-3."""
+    saved = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = saved
 
 
 def weights_digest(model: torch.nn.Module) -> str:

@@ -6,7 +6,8 @@
 * :mod:`.mvs`: :func:`mvs_depth` (posed images [V,3,H,W] -> semi-dense depth, mask, :class:`MVSDepth`) with its
   :class:`MVSConfig`, and :func:`select_sources` (each view's source views, :class:`SourceViews`);
 * :mod:`.raster`: :func:`rasterize` (3D Gaussians -> images, gsplat's conventions, with a backward) and
-  :func:`project_gaussians` (the projection step alone, -> :class:`ProjectedGaussians`), :class:`RasterMeta`.
+  :func:`project_gaussians` (the projection step alone, -> :class:`ProjectedGaussians`), :class:`RasterMeta`;
+  :func:`cpu_layout` picks how CPU calls composite (benchmarks and tests).
 
 Shapes, dtypes and units are in each function's docstring.
 """
@@ -15,10 +16,10 @@ from .geometry import (
     all_other_views, inverse_depth_candidates, nearest_views, plane_sweep_cost_volume, reproject_average, unproject,
 )
 from .mvs import MVSConfig, MVSDepth, SourceViews, mvs_depth, select_sources
-from .raster import ProjectedGaussians, RasterMeta, project_gaussians, rasterize
+from .raster import ProjectedGaussians, RasterMeta, cpu_layout, project_gaussians, rasterize
 
 __all__ = [
     "all_other_views", "inverse_depth_candidates", "nearest_views", "plane_sweep_cost_volume", "reproject_average",
     "unproject", "MVSConfig", "MVSDepth", "SourceViews", "mvs_depth", "select_sources", "ProjectedGaussians",
-    "RasterMeta", "project_gaussians", "rasterize",
+    "RasterMeta", "cpu_layout", "project_gaussians", "rasterize",
 ]

@@ -2,21 +2,22 @@
 
 :func:`radix_sort_pairs` and :func:`inclusive_scan` call Warp's native sort and scan on the tensors' memory (no
 ``wp.array`` wrapping); on CUDA they run on Warp's current stream, so call them inside
-:func:`~codecsplat_warp.device.warp_scope`. :func:`row_chunks` and :func:`run_concurrently` split a CPU launch over
-image rows and run the pieces on a shared thread pool (a Warp CPU launch runs on one thread and releases the GIL);
+:func:`~codecsplat_warp.device.warp_scope`. :func:`row_chunks` and :func:`weighted_chunks` split a CPU launch into
+pieces, and :func:`run_concurrently` runs the pieces on :func:`~codecsplat_warp.device.cpu_threads` threads (a Warp CPU
+launch runs on one thread and releases the GIL).
 :func:`launch_by_rows` launches a row-parallel kernel that way.
 """
 
 from __future__ import annotations
 
 import functools
-import os
+import threading
 from typing import Sequence
 
 import torch
 from warp._src import context as warp_context  # the native sort and scan entry points
 
-from ..device import launch, warp_scope
+from ..device import cpu_threads, launch, warp_scope
 from ..errors import InputError
 
 
@@ -71,30 +72,63 @@ def row_chunks(rows: int, device: torch.device) -> list[tuple[int, int]]:
     """(first row, row count) pieces of a launch over ``rows`` image rows, one per CPU worker thread.
 
     Warp runs a CPU launch on a single thread; ops split their launches by rows and run the pieces with
-    :func:`run_concurrently` (a Warp CPU launch releases the GIL), using ``torch.get_num_threads()``
-    threads like torch's own CPU ops. On CUDA there is one piece.
+    :func:`run_concurrently` (a Warp CPU launch releases the GIL), one piece per thread of
+    :func:`~codecsplat_warp.device.cpu_threads`. On CUDA there is one piece.
     """
-    pieces = 1 if device.type == "cuda" else max(1, min(torch.get_num_threads(), rows))
+    pieces = 1 if device.type == "cuda" else max(1, min(cpu_threads(), rows))
     bounds = [rows * i // pieces for i in range(pieces + 1)]
     return [(lo, hi - lo) for lo, hi in zip(bounds, bounds[1:]) if hi > lo]
 
 
-_cpu_pool = None
+def weighted_chunks(weights: torch.Tensor, pieces: int) -> list[tuple[int, int]]:
+    """(first item, item count) of at most ``pieces`` consecutive runs of items whose weights (a 1-D tensor of
+    non-negative numbers, e.g. the work of each item) have about equal sums; every item is in one run."""
+    count = weights.shape[0]
+    if count == 0:
+        return []
+    pieces = max(1, min(pieces, count))
+    cumulative = torch.cumsum(weights.to(torch.float64), 0)
+    targets = cumulative[-1] * torch.arange(1, pieces, dtype=torch.float64) / pieces
+    cuts = [0, *torch.searchsorted(cumulative, targets, right=True).tolist(), count]
+    return [(lo, hi - lo) for lo, hi in zip(cuts, cuts[1:]) if hi > lo]
+
+
+_pool = None
+_pool_workers = 0
+_pool_lock = threading.Lock()
 
 
 def run_concurrently(tasks: Sequence) -> None:
-    """Call every task (no arguments); more than one run on a shared thread pool. Re-raises the first error."""
-    global _cpu_pool
-    if len(tasks) <= 1:
+    """Call every task (no arguments) on :func:`~codecsplat_warp.device.cpu_threads` threads at most: this one
+    and the workers of a shared pool, each taking the next task in order when it is free (so that more tasks than
+    threads balance uneven work). Returns when every task has finished; re-raises the first error.
+
+    Tasks must not launch tiled kernels (``launch_tiled``): Warp's CPU kernels find their tile arena through one
+    process-wide pointer on x86-64 (its JIT has no thread-local storage), which launches on several threads at
+    once would share."""
+    threads = min(cpu_threads(), len(tasks))
+    if threads <= 1:
         for task in tasks:
             task()
         return
-    if _cpu_pool is None:
-        from concurrent.futures import ThreadPoolExecutor
+    queue = iter(tasks)
+    queue_lock = threading.Lock()
 
-        _cpu_pool = ThreadPoolExecutor(max_workers=os.cpu_count() or 1, thread_name_prefix="codecsplat-cpu")
-    futures = [_cpu_pool.submit(task) for task in tasks[1:]]
-    tasks[0]()
+    def work() -> None:
+        while True:
+            with queue_lock:
+                task = next(queue, None)
+            if task is None:
+                return
+            task()
+
+    pool = _worker_pool(threads - 1)
+    futures = [pool.submit(work) for _ in range(threads - 1)]
+    try:
+        work()
+    finally:
+        for future in futures:
+            future.exception()  # waits: no task may still run on the tensors when this returns
     for future in futures:
         future.result()
 
@@ -128,3 +162,17 @@ def launch_by_rows(kernel, dims: tuple[int, ...], args: list, device: torch.devi
     for buffer in buffers[1:]:
         total += buffer
     return total
+
+
+def _worker_pool(workers: int):
+    """The shared pool, grown to at least ``workers`` threads."""
+    global _pool, _pool_workers
+    with _pool_lock:
+        if _pool is None or _pool_workers < workers:
+            from concurrent.futures import ThreadPoolExecutor
+
+            if _pool is not None:
+                _pool.shutdown(wait=False)
+            _pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="codecsplat-cpu")
+            _pool_workers = workers
+        return _pool

@@ -20,9 +20,12 @@ Function (or, when nothing needs a gradient, called without one) so that a call 
    for the other around the read; when the read shows the guess too small (or the key too wide), the keys are
    emitted, sorted and composited again into buffers of the exact size. Either way the sorted order, and so the
    render, is the same.
-5. Front-to-back compositing per tile (rows staged in shared memory; expected depth normalised in the
-   kernel), and a hand-written back-to-front backward. Projection gradients come from an adjoint launch of
-   its straight-line twin kernel.
+5. Front-to-back compositing per tile (expected depth normalised in the kernel), and a hand-written back-to-front
+   backward. On CUDA a block of lanes per tile stages its rows in shared memory
+   (:mod:`~codecsplat_warp.kernels.raster_composite`); on the CPU one thread per tile reads them in place, the
+   tiles split over :func:`~codecsplat_warp.device.cpu_threads` threads
+   (:mod:`~codecsplat_warp.kernels.raster_composite_cpu`, see :data:`CPU_LAYOUTS`), with the same results on any
+   number of threads. Projection gradients come from an adjoint launch of its straight-line twin kernel.
 
 Gradients flow to ``means``, ``quats``, ``scales``, ``opacities``, ``colors`` (RGB or SH) and
 ``background``. ``viewmats`` and ``Ks`` are **not** differentiated (their gradient is None).
@@ -30,20 +33,21 @@ Gradients flow to ``means``, ``quats``, ``scales``, ``opacities``, ``colors`` (R
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import numbers
 import threading
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Iterator, NamedTuple
 
 import torch
 
 from ..checks import FLOAT_DTYPES, check_finite, check_tensor, common_device, validation_enabled
-from ..device import launch, matrices, stage_host_values, vectors, warp_dtype, warp_scope
+from ..device import cpu_threads, launch, matrices, stage_host_values, vectors, warp_dtype, warp_scope
 from ..errors import InputError, RasterMemoryError
-from ..kernels import raster_composite, raster_project, raster_row, raster_tiles
-from .primitives import inclusive_scan, radix_sort_pairs
+from ..kernels import raster_composite, raster_composite_cpu, raster_project, raster_row, raster_tiles
+from .primitives import inclusive_scan, radix_sort_pairs, row_chunks, run_concurrently, weighted_chunks
 
 _LOW_PRECISION = (torch.float16, torch.bfloat16)
 
@@ -414,45 +418,55 @@ def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, setting
              zero_culled: bool = False) -> torch.Tensor:  # fmt: skip
     """Fill the projected rows ``splats [B*N, 10]`` (rows of culled Gaussians only with ``zero_culled``, else left
     as they were), ``tile_counts [B*N]``, ``flags`` and the ``visible`` list, and zero the tile ``ranges``
-    ``[T, 2]`` int32 (``[0, 2]`` for none); return radii ``[B*N, 2]`` int32."""
+    ``[T, 2]`` int32 (``[0, 2]`` for none); return radii ``[B*N, 2]`` int32. On the CPU the Gaussians are split
+    over the threads, and the ``visible`` list is then rewritten in row order (:func:`_list_visible_in_order`)."""
     dtype = means.dtype
     scalar = warp_dtype(dtype)
     radii = tile_counts.new_empty(splats.shape[0], 2, dtype=torch.int32)
-    launch(
-        raster_project.projection_kernels(settings.sh_degree >= 0).project,
-        (cameras.viewmats.shape[0], means.shape[0]),
-        [
-            *_projection_inputs(means, quats, scales, opacities, coeffs, cameras),
-            settings.sh_degree,
-            settings.width,
-            settings.height,
-            scalar(settings.near),
-            scalar(settings.far),
-            _LOW_PASS[dtype],
-            int(settings.antialiased),
-            settings.tile_size,
-            settings.tiles_x,
-            settings.tiles_y,
-            int(zero_culled),
-            splats,
-            vectors(radii),
-            tile_counts,
-            flags,
-            visible.count,
-            visible.rows,
-            vectors(ranges),
-        ],
-        wdev,
-        layout=dtype,
-    )
+    args = [
+        *_projection_inputs(means, quats, scales, opacities, coeffs, cameras),
+        settings.sh_degree,
+        settings.width,
+        settings.height,
+        scalar(settings.near),
+        scalar(settings.far),
+        _LOW_PASS[dtype],
+        int(settings.antialiased),
+        settings.tile_size,
+        settings.tiles_x,
+        settings.tiles_y,
+        int(zero_culled),
+    ]
+    outputs = [splats, vectors(radii), tile_counts, flags, visible.count, visible.rows, vectors(ranges)]
+    kernel = raster_project.projection_kernels(settings.sh_degree >= 0).project
+    B = cameras.viewmats.shape[0]
+    run_concurrently([
+        functools.partial(launch, kernel, (B, count), [*args, first, *outputs], wdev, layout=dtype)
+        for first, count in row_chunks(means.shape[0], means.device)
+    ])  # fmt: skip
+    if means.device.type == "cpu":
+        _list_visible_in_order(radii, visible)
     return radii
+
+
+def _list_visible_in_order(radii: torch.Tensor, visible: _Visible) -> None:
+    """Rewrite the ``visible`` list as the visible rows (non-zero ``radii [B*N, 2]``) in increasing order, i.e.
+    camera by camera: the order in which concurrent CPU launches appended them is not reproducible, and the
+    projection backward walks the list camera by camera (:func:`_project_backward`)."""
+    rows = torch.nonzero(radii.any(dim=1)).view(-1)
+    visible.count[0] = rows.shape[0]
+    visible.rows[: rows.shape[0]] = rows
 
 
 def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, cameras: _Cameras, visible: _Visible,
                       settings: _Settings, wdev) -> list[torch.Tensor]:  # fmt: skip
     """Gradients of means ``[N,3]``, quats ``[N,4]``, scales ``[N,3]``, opacities ``[N]`` and coeffs ``[N,K,3]``
     from the gradient of the projected rows ``[B*N, 10]`` (views of one zero-initialised buffer); one thread per
-    row of the ``visible`` list."""
+    row of the ``visible`` list.
+
+    On the CPU (where the list is in row order) the rows are taken camera after camera, each camera's split over
+    the threads: a Gaussian has one row per camera, so no two threads add to its gradient at once (Warp's CPU
+    atomics are plain adds), and its cameras' terms are added in camera order on any number of threads."""
     B, (N, K) = cameras.viewmats.shape[0], coeffs.shape[:2]
     dtype = means.dtype
     sizes = (3 * N, 4 * N, 3 * N, N, 3 * K * N)
@@ -461,25 +475,30 @@ def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, camera
     zero = _ZERO[dtype]
     adj_args = [vectors(grads[0]), vectors(grads[1]), vectors(grads[2]), grads[3], vectors(grads[4]), None, None, None,
                 None, None, 0, 0, 0, zero, 0, grad_rows]  # fmt: skip
-    launch(
-        raster_project.projection_kernels(settings.sh_degree >= 0).differentiable,
-        B * N,
-        [
-            *_projection_inputs(means, quats, scales, opacities, coeffs, cameras),
-            visible.count,
-            visible.rows,
-            settings.sh_degree,
-            settings.width,
-            settings.height,
-            _LOW_PASS[dtype],
-            int(settings.antialiased),
-            torch.empty_like(grad_rows),
-        ],
-        wdev,
-        adj_args=adj_args,
-        layout=dtype,
-    )
+    inputs = _projection_inputs(means, quats, scales, opacities, coeffs, cameras)
+    settings_args = [settings.sh_degree, settings.width, settings.height, _LOW_PASS[dtype], int(settings.antialiased),
+                     torch.empty_like(grad_rows)]  # fmt: skip
+    kernel = raster_project.projection_kernels(settings.sh_degree >= 0).differentiable
+    if means.device.type != "cpu":
+        launch(kernel, B * N, [*inputs, visible.count, visible.rows, *settings_args], wdev, adj_args=adj_args,
+               layout=dtype)  # fmt: skip
+        return grads
+    rows = visible.rows[: int(visible.count[0])]
+    bounds = torch.searchsorted(rows, torch.arange(B + 1, dtype=rows.dtype) * N).tolist()
+    for camera in range(B):
+        pieces = [(bounds[camera] + first, count)
+                  for first, count in row_chunks(bounds[camera + 1] - bounds[camera], means.device)]  # fmt: skip
+        run_concurrently([
+            functools.partial(launch, kernel, count, [*inputs, _length(count), rows[first : first + count],
+                                                      *settings_args], wdev, adj_args=adj_args, layout=dtype)
+            for first, count in pieces
+        ])  # fmt: skip
     return grads
+
+
+def _length(count: int) -> torch.Tensor:
+    """``[count]`` as the ``[1]`` int64 tensor a list length is passed as."""
+    return torch.tensor([count], dtype=torch.int64)
 
 
 class _ProjectGaussians(torch.autograd.Function):
@@ -534,33 +553,164 @@ def _zero_length(device: torch.device, dtype: torch.dtype, inner: tuple[int, ...
 # --------------------------------------------------------------------------------------------------
 # The render and its backward (the stages in order: _render)
 CPU_BATCH = 16
-"""Rows a one-pixel CPU block stages per step (CUDA blocks stage block_dim rows, one per lane)."""
+"""Rows a one-pixel CPU block of the block layout stages per step (CUDA blocks stage block_dim rows, one per lane)."""
+
+CPU_LAYOUTS = ("tiles", "blocks")
+"""How a CPU call composites. ``"tiles"`` (the default): one thread per tile
+(:mod:`~codecsplat_warp.kernels.raster_composite_cpu`), the tiles in runs of about equal work on
+:func:`~codecsplat_warp.device.cpu_threads` threads. ``"blocks"``: the CUDA layout's kernels
+(:mod:`~codecsplat_warp.kernels.raster_composite`) with one-lane blocks, on one thread, the CPU's layout before the
+tile layout; kept so that CPU-only machines test the CUDA kernels' code, and to time the tile layout against (see
+:func:`cpu_layout`). CUDA calls always use the block layout."""
+
+TILE_RUNS_PER_THREAD = 4
+"""Runs of tiles per thread in the tile layout: more runs than threads, so that a thread that finishes early takes
+another run (tiles differ in work by orders of magnitude)."""
+
+_layout_choice = threading.local()
 
 
-class _CompositeLaunch(NamedTuple):
-    """How both compositing kernels are launched: ``blocks`` blocks of ``block_dim`` lanes, ``blocks_per_tile`` per
-    tile, ``kernels`` = (forward, backward)."""
+@contextlib.contextmanager
+def cpu_layout(name: str) -> Iterator[None]:
+    """Composite the CPU calls this thread makes inside the block in layout ``name``, one of :data:`CPU_LAYOUTS`
+    (benchmarks and tests; the default is ``"tiles"``). Raises InputError for another name."""
+    if name not in CPU_LAYOUTS:
+        raise InputError(f"CPU layout must be one of {CPU_LAYOUTS}, got {name!r}")
+    previous = getattr(_layout_choice, "name", CPU_LAYOUTS[0])
+    _layout_choice.name = name
+    try:
+        yield
+    finally:
+        _layout_choice.name = previous
+
+
+def _composite_launch(device: torch.device, tile_size: int, num_tiles: int) -> _BlockComposite | _TileComposite:
+    """The compositing layout of a call: blocks of one lane per pixel on CUDA (at most
+    ``raster_composite.MAX_LANES`` a block); on the CPU the tile layout, or one-lane blocks (:func:`cpu_layout`)."""
+    if device.type == "cpu" and getattr(_layout_choice, "name", CPU_LAYOUTS[0]) == "tiles":
+        return _TILE_COMPOSITE
+    pixels = tile_size * tile_size
+    lanes = min(pixels, raster_composite.MAX_LANES) if device.type == "cuda" else 1
+    batch = lanes if device.type == "cuda" else CPU_BATCH
+    blocks_per_tile = -(-pixels // lanes)
+    kernels = raster_composite.composite_kernels(batch)
+    return _BlockComposite(num_tiles * blocks_per_tile, lanes, blocks_per_tile, kernels)
+
+
+class _BlockComposite(NamedTuple):
+    """The block layout (:mod:`~codecsplat_warp.kernels.raster_composite`): both kernels are launched as ``blocks``
+    blocks of ``block_dim`` lanes, ``blocks_per_tile`` per tile; ``kernels`` = (forward, backward)."""
 
     blocks: int
     block_dim: int
     blocks_per_tile: int
     kernels: tuple
 
+    def forward(self, binning: _Binning, ranges, colors_or_black, sorted_ids: torch.Tensor, outputs: tuple,
+                wdev) -> None:  # fmt: skip
+        """Composite into ``outputs`` (see :func:`_composite_outputs`); nothing is kept for the backward."""
+        splats, settings = binning.splats, binning.settings
+        common = _composite_args(ranges, sorted_ids, splats, colors_or_black, settings) + [self.blocks_per_tile]
+        threshold = warp_dtype(splats.dtype)(settings.min_transmittance)
+        launch(self.kernels[0], self.blocks, [*common, threshold, *outputs], wdev, block_dim=self.block_dim,
+               layout=splats.dtype)  # fmt: skip
+        return None
 
-def _composite_launch(device: torch.device, tile_size: int, num_tiles: int) -> _CompositeLaunch:
-    """One lane per pixel on CUDA (at most ``raster_composite.MAX_LANES`` a block), one-lane blocks on the CPU."""
-    pixels = tile_size * tile_size
-    lanes = min(pixels, raster_composite.MAX_LANES) if device.type == "cuda" else 1
-    batch = lanes if device.type == "cuda" else CPU_BATCH
-    blocks_per_tile = -(-pixels // lanes)
-    kernels = raster_composite.composite_kernels(batch)
-    return _CompositeLaunch(num_tiles * blocks_per_tile, lanes, blocks_per_tile, kernels)
+    def backward(self, saved: _Saved, colors_or_black, settings: _Settings, output_grads: list, wdev) -> torch.Tensor:
+        """The gradient of the projected rows ``[B*N, 10]`` from the gradients of the flat outputs."""
+        grad_rows = torch.zeros_like(saved.splats)
+        common = _composite_args(saved.ranges, saved.sorted_ids, saved.splats, colors_or_black, settings)
+        launch(self.kernels[1], self.blocks, [*common, self.blocks_per_tile, saved.state, saved.last, *output_grads,
+               grad_rows], wdev, block_dim=self.block_dim, layout=saved.splats.dtype)  # fmt: skip
+        return grad_rows
 
 
-def _composite_args(ranges, sorted_ids, rows, background, settings: _Settings, blocks_per_tile: int) -> list:
-    """The leading arguments shared by both compositing kernels."""
+class _TileState(NamedTuple):
+    """What the tile layout's backward needs from its forward: ``skip_powers [count]`` (the Gaussians' dtype) and
+    ``line_powers [count]`` float64, and the binning's ``radii [B*N, 2]`` int32, ``tile_counts`` and inclusive
+    ``offsets`` ``[B*N]`` int64."""
+
+    skip_powers: torch.Tensor
+    line_powers: torch.Tensor
+    radii: torch.Tensor
+    tile_counts: torch.Tensor
+    offsets: torch.Tensor
+
+
+class _TileComposite:
+    """The CPU tile layout (:mod:`~codecsplat_warp.kernels.raster_composite_cpu`); stateless (one instance,
+    :data:`_TILE_COMPOSITE`)."""
+
+    def forward(self, binning: _Binning, ranges, colors_or_black, sorted_ids: torch.Tensor, outputs: tuple,
+                wdev) -> _TileState:  # fmt: skip
+        """Composite into ``outputs`` (see :func:`_composite_outputs`); returns what the backward needs."""
+        splats, settings = binning.splats, binning.settings
+        count = sorted_ids.shape[0]
+        skip_powers = splats.new_empty(count)
+        line_powers = splats.new_empty(count, dtype=torch.float64)
+        common = _composite_args(ranges, sorted_ids, splats, colors_or_black, settings)
+        threshold = warp_dtype(splats.dtype)(settings.min_transmittance)
+        run_concurrently([
+            functools.partial(launch, raster_composite_cpu.composite_forward_tiles, tiles,
+                              [*common, first, threshold, _POWER_ROUNDING[splats.dtype], skip_powers, line_powers,
+                               *_line_scratch(sorted_ids), *outputs], wdev, layout=splats.dtype)
+            for first, tiles in _tile_runs(ranges)
+        ])  # fmt: skip
+        return _TileState(skip_powers, line_powers, binning.radii, binning.tile_counts, binning.offsets)
+
+    def backward(self, saved: _Saved, colors_or_black, settings: _Settings, output_grads: list, wdev) -> torch.Tensor:
+        """The gradient of the projected rows ``[B*N, 10]`` from the gradients of the flat outputs: per
+        intersection on the tiles' threads, then summed per row."""
+        splats, tiles = saved.splats, saved.composite_state
+        count = saved.sorted_ids.shape[0]
+        grad_intersections = splats.new_zeros(count, raster_row.ROW_WIDTH)
+        positions = saved.sorted_ids.new_empty(count)
+        common = _composite_args(saved.ranges, saved.sorted_ids, splats, colors_or_black, settings)
+        run_concurrently([
+            functools.partial(launch, raster_composite_cpu.composite_backward_tiles, tiles_in_run,
+                              [*common, first, tiles.skip_powers, tiles.line_powers, *_line_scratch(saved.sorted_ids),
+                               vectors(tiles.radii), tiles.tile_counts, tiles.offsets, saved.state, saved.last,
+                               *output_grads, positions, grad_intersections],
+                              wdev, layout=splats.dtype)
+            for first, tiles_in_run in _tile_runs(saved.ranges)
+        ])  # fmt: skip
+        grad_rows = torch.empty_like(splats)
+        run_concurrently([
+            functools.partial(launch, raster_composite_cpu.sum_intersection_gradients, rows,
+                              [tiles.tile_counts, tiles.offsets, grad_intersections, first, grad_rows], wdev,
+                              layout=splats.dtype)
+            for first, rows in row_chunks(splats.shape[0], splats.device)
+        ])  # fmt: skip
+        return grad_rows
+
+
+_TILE_COMPOSITE = _TileComposite()
+
+_POWER_ROUNDING = {dtype: warp_dtype(torch.float64)(raster_composite_cpu.POWER_ROUNDING[name])
+                   for dtype, name in ((torch.float32, "float32"), (torch.float64, "float64"))}  # fmt: skip
+"""The tile layout's bound on the rounding of a row's power, per Gaussian dtype (a Warp float64)."""
+
+
+def _line_scratch(sorted_ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The tile layout's per-line scratch for ``count`` sorted intersections: row list (int32) and masks (uint32)."""
+    count = sorted_ids.shape[0]
+    return sorted_ids.new_empty(count), sorted_ids.new_empty(count, dtype=torch.uint32)
+
+
+def _tile_runs(ranges: torch.Tensor) -> list[tuple[int, int]]:
+    """(first tile, tile count) runs of the tile layout: one run on one thread, else
+    :data:`TILE_RUNS_PER_THREAD` runs per thread of about equal intersection counts."""
+    threads = cpu_threads()
+    if threads == 1:
+        return [(0, ranges.shape[0])]
+    work = (ranges[:, 1] - ranges[:, 0]) + 1  # + 1: a tile without intersections still writes its pixels
+    return weighted_chunks(work, threads * TILE_RUNS_PER_THREAD)
+
+
+def _composite_args(ranges, sorted_ids, rows, background, settings: _Settings) -> list:
+    """The leading arguments shared by the compositing kernels of both layouts."""
     return [ranges, sorted_ids, rows, background, settings.width, settings.height, settings.tile_size,
-            settings.tiles_x, settings.tiles_x * settings.tiles_y, blocks_per_tile]  # fmt: skip
+            settings.tiles_x, settings.tiles_x * settings.tiles_y]  # fmt: skip
 
 
 class _Saved(NamedTuple):
@@ -570,7 +720,7 @@ class _Saved(NamedTuple):
         colors_or_black: ``[B,3]`` background or ``[0,3]``; cameras: the prepared cameras; splats: projected rows
         ``[B*N, 10]``; visible: the projection's list of visible rows; ranges: ``[B*tiles, 2]`` int32; sorted_ids:
         ``[count]`` int32; state: ``[P,2]`` (final T, accumulated depth); last: ``[P]`` int32; composite: the
-        compositing launch.
+        compositing layout; composite_state: what its forward kept for the backward (None in the block layout).
     """
 
     colors_or_black: torch.Tensor
@@ -581,7 +731,8 @@ class _Saved(NamedTuple):
     sorted_ids: torch.Tensor
     state: torch.Tensor
     last: torch.Tensor
-    composite: _CompositeLaunch
+    composite: _BlockComposite | _TileComposite
+    composite_state: _TileState | None
 
 
 def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, settings: _Settings,
@@ -606,7 +757,7 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
         binning = _Binning(splats, radii, ints, tile_counts, offsets, flags, B, settings)
         composite = _composite_launch(device, settings.tile_size, len(ranges))
         shape = (device, B, N, settings.width, settings.height, settings.tile_size)
-        count, sorted_ids, outputs = _bin_and_composite(
+        count, sorted_ids, outputs, composite_state = _bin_and_composite(
             binning, ranges, colors_or_black, composite, shape if device.type in SPECULATIVE_DEVICE_TYPES else None,
             max_intersection_bytes, wdev,
         )  # fmt: skip
@@ -614,7 +765,8 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
     H, W = settings.height, settings.width
     depth = depth.view(B, H, W, 1) if settings.render_depth else None
     outputs = (color.view(B, H, W, 3), depth, alpha.view(B, H, W, 1), radii.view(B, N, 2), count)
-    return outputs, _Saved(colors_or_black, cameras, splats, visible, ranges, sorted_ids, state, last, composite)
+    return outputs, _Saved(colors_or_black, cameras, splats, visible, ranges, sorted_ids, state, last, composite,
+                           composite_state)
 
 
 class _Rasterize(torch.autograd.Function):
@@ -642,16 +794,12 @@ class _Rasterize(torch.autograd.Function):
         saved: _Saved = ctx.saved
         grads = [None] * 5
         if any(ctx.needs_input_grad[:5]):
-            splats, composite = saved.splats, saved.composite
+            splats = saved.splats
             coeffs = _sh_coefficients(colors)
             output_grads = [_flat_gradient(grad_color, splats, (3,)), _flat_gradient(grad_depth, splats, ()),
                             _flat_gradient(grad_alpha, splats, ())]  # fmt: skip
-            grad_rows = torch.zeros_like(splats)
-            common = _composite_args(saved.ranges, saved.sorted_ids, splats, colors_or_black, settings,
-                                     composite.blocks_per_tile)  # fmt: skip
             with warp_scope(means.device) as wdev:
-                launch(composite.kernels[1], composite.blocks, [*common, saved.state, saved.last, *output_grads,
-                       grad_rows], wdev, block_dim=composite.block_dim, layout=means.dtype)  # fmt: skip
+                grad_rows = saved.composite.backward(saved, colors_or_black, settings, output_grads, wdev)
                 grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs, saved.cameras,
                                           saved.visible, settings, wdev)  # fmt: skip
             grads[4] = grads[4].view(ctx.colors_shape)
@@ -818,38 +966,38 @@ def _sort_buffers(like: torch.Tensor, capacity: int, key_dtype: torch.dtype) -> 
 
 
 def _emit(binning: _Binning, capacity: int, keys: torch.Tensor, values: torch.Tensor, wdev) -> None:
-    """Launch :func:`~codecsplat_warp.kernels.raster_tiles.emit_intersections` over every row, or with ``capacity``
-    0 on one thread (which publishes the key layout and writes nothing)."""
+    """Launch :func:`~codecsplat_warp.kernels.raster_tiles.emit_intersections` over every row (on the CPU split over
+    the threads: rows write disjoint intersections), or with ``capacity`` 0 on one thread (which publishes the key
+    layout and writes nothing)."""
     splats, settings = binning.splats, binning.settings
-    launch(
-        raster_tiles.emit_intersections,
-        splats.shape[0] if capacity else 1,
-        [
-            splats,
-            vectors(binning.radii),
-            binning.tile_counts,
-            binning.offsets,
-            binning.flags,
-            splats.shape[0] // binning.num_cameras,
-            settings.tile_size,
-            settings.tiles_x,
-            settings.tiles_y,
-            binning.num_tiles,
-            capacity,
-            keys,
-            values,
-        ],
-        wdev,
-        layout=(splats.dtype, keys.dtype),
-    )
+    args = [
+        splats,
+        vectors(binning.radii),
+        binning.tile_counts,
+        binning.offsets,
+        binning.flags,
+        splats.shape[0] // binning.num_cameras,
+        settings.tile_size,
+        settings.tiles_x,
+        settings.tiles_y,
+        binning.num_tiles,
+        capacity,
+    ]
+    pieces = row_chunks(splats.shape[0], splats.device) if capacity else [(0, 1)]
+    run_concurrently([
+        functools.partial(launch, raster_tiles.emit_intersections, rows, [*args, first, keys, values], wdev,
+                          layout=(splats.dtype, keys.dtype))
+        for first, rows in pieces
+    ])  # fmt: skip
 
 
 def _bin_and_composite(binning: _Binning, ranges: torch.Tensor, colors_or_black: torch.Tensor,
-                       composite: _CompositeLaunch, speculation_shape: tuple | None, max_bytes: int,
-                       wdev) -> tuple[int, torch.Tensor, tuple]:  # fmt: skip
+                       composite: _BlockComposite | _TileComposite, speculation_shape: tuple | None, max_bytes: int,
+                       wdev) -> tuple[int, torch.Tensor, tuple, _TileState | None]:  # fmt: skip
     """Bin the projected rows into tiles and composite them: ``(intersection count, sorted row ids [count] int32,
-    the outputs of :func:`_composite_outputs`)``; fills the tile ranges ``[B*tiles, 2]`` (zeroed by the
-    projection). The call's one host read (count, validation flags, key layout) happens here.
+    the outputs of :func:`_composite_outputs`, what the layout keeps for the backward)``; fills the tile ranges
+    ``[B*tiles, 2]`` (zeroed by the projection). The call's one host read (count, validation flags, key layout)
+    happens here.
 
     Without a guess for ``speculation_shape`` (None: no speculation) the host reads first, then bins exactly. With
     one, it bins into the guessed capacity and queues the compositing before it reads; when the read shows the
@@ -862,7 +1010,7 @@ def _bin_and_composite(binning: _Binning, ranges: torch.Tensor, colors_or_black:
     if guess is not None:
         sorted_ids, read = _bin(binning, guess.capacity, guess.key_dtype, guess.end_bit, ranges, wdev, stage=True)
         outputs = _composite_outputs(binning.num_cameras, settings, splats)
-        _composite_forward(ranges, splats, colors_or_black, settings, composite, sorted_ids, outputs, wdev)
+        state = composite.forward(binning, ranges, colors_or_black, sorted_ids, outputs, wdev)
     else:
         no_keys, no_values = (_zero_length(splats.device, dtype, ()) for dtype in (torch.uint32, torch.int32))
         _emit(binning, 0, no_keys, no_values, wdev)  # only publishes the key layout
@@ -877,10 +1025,10 @@ def _bin_and_composite(binning: _Binning, ranges: torch.Tensor, colors_or_black:
         sorted_ids = _bin(binning, count, key.dtype, key.bits, ranges, wdev)[0]
         if outputs is None:
             outputs = _composite_outputs(binning.num_cameras, settings, splats)
-        _composite_forward(ranges, splats, colors_or_black, settings, composite, sorted_ids, outputs, wdev)
+        state = composite.forward(binning, ranges, colors_or_black, sorted_ids, outputs, wdev)
     if speculation_shape is not None:
         _remember(speculation_shape, count, key)
-    return count, sorted_ids, outputs
+    return count, sorted_ids, outputs, state
 
 
 def _read_span(binning: _Binning) -> tuple[int, int]:
@@ -914,15 +1062,6 @@ def _bin(binning: _Binning, capacity: int, key_dtype: torch.dtype, end_bit: int,
     launch(raster_tiles.tile_ranges, capacity, [keys, binning.offsets, binning.flags, capacity, ranges], wdev,
            layout=key_dtype)  # fmt: skip
     return values[:capacity], read
-
-
-def _composite_forward(ranges, splats, colors_or_black, settings: _Settings, composite: _CompositeLaunch,
-                       sorted_ids: torch.Tensor, outputs: tuple, wdev) -> None:  # fmt: skip
-    """Launch the forward compositing kernel into ``outputs`` (see :func:`_composite_outputs`)."""
-    common = _composite_args(ranges, sorted_ids, splats, colors_or_black, settings, composite.blocks_per_tile)
-    threshold = warp_dtype(splats.dtype)(settings.min_transmittance)
-    launch(composite.kernels[0], composite.blocks, [*common, threshold, *outputs], wdev,
-           block_dim=composite.block_dim, layout=splats.dtype)  # fmt: skip
 
 
 def _empty_render(means, viewmats, background, settings: _Settings):

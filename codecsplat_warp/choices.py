@@ -1,0 +1,35 @@
+"""Names and defaults that the command line offers and the library uses, in a module without imports.
+
+``codecsplat --help`` builds its parser from these (and from :mod:`codecsplat_warp.bench.options`) without
+importing torch or Warp, so that it, every subcommand's ``--help`` and a bad argument answer at once; the modules
+that use them import them from here.
+"""
+
+from __future__ import annotations
+
+DEMO_SCENE = "nerd_mary_rose"
+"""The scene ``codecsplat demo`` runs on by default: photographs shipped with the package."""
+
+PROCEDURAL = "procedural"
+"""``--scene`` name of the procedural room."""
+
+DEMO_SEED = 3
+"""Seed of ``codecsplat demo``'s procedural scene."""
+
+DEMO_LAMBDAS = (16.0, 128.0, 1024.0)
+"""Rate trade-offs ``codecsplat demo`` encodes at."""
+
+DEMO_TARGET_VIEWS = 2
+"""Target views ``codecsplat demo`` renders and scores."""
+
+BASELINE_NAMES = ("ply", "png", "feature")
+"""Baselines ``--baselines`` may name: (a) PLY + Deflate, (b) PNG, (c) float16 feature + Deflate."""
+
+PAPER_LAMBDAS = (16.0, 32.0, 64.0, 128.0, 256.0, 512.0, 1024.0)
+"""The paper's rate trade-offs (``codecsplat eval``'s default)."""
+
+PROTOCOL_NAMES = ("re10k", "dl3dv", "scene")
+"""The evaluation protocols, the keys of :data:`codecsplat_warp.eval.protocols.PROTOCOLS`."""
+
+FRAME_FORMATS = ("png", "gif", "mp4")
+"""Output formats of rendered frames (:func:`codecsplat_warp.export.video.write_frames`)."""

@@ -1,0 +1,47 @@
+"""A bitstream decodes to the same scene on every device: the fixture in tests/fixtures/crossdevice holds a bitstream
+with the Gaussians and renders of its float32 decode on the machine that wrote it (regenerate it on a CUDA machine
+with ``codecsplat bench crossdevice --device cuda --write tests/fixtures/crossdevice``); here it is decoded on the
+CPU and compared."""
+
+from __future__ import annotations
+
+import json
+import pathlib
+
+import pytest
+import torch
+
+from codecsplat_warp.bench.crossdevice import GAUSSIAN_TOLERANCE, RENDER_PSNR_DB, check_fixture
+from codecsplat_warp.errors import InputError
+from codecsplat_warp.model.codecsplat import model_id
+from codecsplat_warp.model.pretrained import load_pretrained
+
+FIXTURE = pathlib.Path(__file__).parent / "fixtures" / "crossdevice"
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    return load_pretrained(None, "cpu")
+
+
+def test_fixture_decodes_on_the_cpu_to_its_gaussians_and_renders_even_under_bf16_autocast(shipped):
+    """The decode runs in float32 whatever autocast the caller runs under (a bf16 decode moves the Gaussians by
+    about 1e-2 relative: far outside the tolerance)."""
+    record = json.loads((FIXTURE / "record.json").read_text())
+    if record["model_id"] != model_id(shipped):
+        pytest.skip(f"the fixture was written with model {record['model_id']}, the shipped model is "
+                    f"{model_id(shipped)}: regenerate it (see the module docstring)")
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        result = check_fixture(FIXTURE, torch.device("cpu"))
+    assert max(result["relative_error"].values()) <= GAUSSIAN_TOLERANCE, result["table"]
+    assert min(result["render_psnr_db"]) >= RENDER_PSNR_DB, result["table"]
+    assert result["passed"]
+
+
+def test_fixture_stays_small():
+    assert sum(f.stat().st_size for f in FIXTURE.iterdir()) < 1 << 20
+
+
+def test_unknown_decode_precision_is_an_input_error(shipped):
+    with pytest.raises(InputError, match="precision"):
+        shipped.decode_scene(b"", precision="float16")
