@@ -13,10 +13,11 @@ import torch
 from PIL import Image
 
 import codecsplat_warp.eval.report as report
-from codecsplat_warp.data import ProceduralConfig, procedural_scene
+from codecsplat_warp.data import ProceduralConfig, procedural_scene, read_depth_maps
+from codecsplat_warp.data.depth_maps import DEPTH_FORMAT, quantize_depth
 from codecsplat_warp.errors import DataError
 from codecsplat_warp.eval.evaluate import EvalConfig, Evaluator, evaluate
-from codecsplat_warp.eval.geometry import ReferenceDepth, depth_errors, read_depth_maps, to_sample_grid
+from codecsplat_warp.eval.geometry import ReferenceDepth, depth_errors, to_sample_grid
 from codecsplat_warp.eval.protocols import PROTOCOLS, Sample, find_scenes, index_samples
 from codecsplat_warp.eval.report import BACKBONE, CODECSPLAT, COPY_NEAREST, plot_rate_distortion
 from codecsplat_warp.gaussians import SH_C0, Gaussians
@@ -63,11 +64,11 @@ def write_reference(folder, files: dict[str, np.ndarray], scale: float = 1e-3, e
     (folder / "depth").mkdir(parents=True, exist_ok=True)
     frames = []
     for i, (file, depth) in enumerate(files.items()):
-        Image.fromarray(np.round(depth / scale).astype(np.uint16)).save(folder / "depth" / f"{i}.png")
+        Image.fromarray(quantize_depth(torch.from_numpy(depth), scale)).save(folder / "depth" / f"{i}.png")
         frames.append({"file": file, "depth": f"depth/{i}.png", "mask": f"mask/{i}.png", "coverage": 1.0,
                        "sources": []})
     height, width = next(iter(files.values())).shape
-    header = {"format": "codecsplat-depth-v1", "scale": scale, "width": width, "height": height, "near": 0.1,
+    header = {"format": DEPTH_FORMAT, "scale": scale, "width": width, "height": height, "near": 0.1,
               "far": 60.0, "frames": frames, **(extra or {})}
     (folder / "depth.json").write_text(json.dumps(header))
 
@@ -104,26 +105,27 @@ def test_reference_depth_of_the_context_views_on_the_sample_grid(scenes, tmp_pat
 
 @pytest.mark.parametrize("change,match", [
     ({"format": "codecsplat-depth-v0"}, "format must be 'codecsplat-depth-v1'"),
-    ({"scale": -1.0}, "scale must be a positive number"), ({"scale": "1e-3"}, "scale must be a positive number"),
-    ({"width": 0}, "width and height"), ({"frames": {"images/000.png": "depth/0.png"}}, "frames must be a list"),
-    ({"width": 9}, r"depth/0.png: 8x4 pixels, depth.json says 9x4"),
+    ({"scale": "a lot"}, "missing or malformed field"), ({"frames": {"images/000.png": "depth/0.png"}}, "malformed"),
+    ({"width": 9}, r"depth/0.png is 8x4, depth.json says 9x4"), ({"frames": []}, "holds no frame"),
 ])
 def test_a_corrupt_depth_json_is_a_data_error(tmp_path, change, match):
-    write_reference(tmp_path, {"images/000.png": np.ones((4, 8))}, extra=change)
+    write_reference(tmp_path / "mvs" / "a", {"images/000.png": np.ones((4, 8))}, extra=change)
+    sample = Sample("a", [0, 1], [2], torch.rand(2, 3, 4, 8), None, torch.rand(1, 3, 4, 8), None,
+                    ("images/000.png", "images/001.png"), (8, 4))
     with pytest.raises(DataError, match=match):
-        read_depth_maps(tmp_path)
+        ReferenceDepth(tmp_path / "mvs").context_depth(sample)
 
 
 def test_unreadable_depth_files_are_data_errors(tmp_path):
     (tmp_path / "depth.json").write_text("{not json")
-    with pytest.raises(DataError, match="not a readable depth file"):
+    with pytest.raises(DataError, match="cannot read JSON"):
         read_depth_maps(tmp_path)
     write_reference(tmp_path, {"images/000.png": np.ones((4, 8))})
     Image.fromarray(np.ones((4, 8), dtype=np.uint8)).save(tmp_path / "depth" / "0.png")
-    with pytest.raises(DataError, match="16-bit single-channel"):
+    with pytest.raises(DataError, match="must be a 16-bit grey PNG"):
         read_depth_maps(tmp_path)
     (tmp_path / "depth" / "0.png").unlink()
-    with pytest.raises(DataError, match="0.png: cannot read the depth PNG"):
+    with pytest.raises(DataError, match="0.png does not exist"):
         read_depth_maps(tmp_path)
 
 

@@ -9,7 +9,7 @@ The reference of a scene is ``DIR/<scene folder name>/depth.json`` (format ``cod
 
 ``file`` is the image path as in the scene's ``cameras.json``; ``depth/x.png`` is a 16-bit PNG of w x h
 pixels covering the same image extent as the stored photograph: depth = value * s (camera z, scene units),
-0 where the stereo kept no depth.
+0 where the stereo kept no depth (read by :func:`~codecsplat_warp.data.depth_maps.read_depth_maps`).
 
 :class:`ReferenceDepth` brings a sample's context views to the sample's grid: the protocol's resize to cover
 and centre crop (:func:`~codecsplat_warp.data.preprocess.crop_geometry`), sampled at each pixel centre with
@@ -20,76 +20,16 @@ max(d / d_ref, d_ref / d) < 1.25, pooled over the pixels of all context views of
 
 from __future__ import annotations
 
-import json
-import math
 import pathlib
-from dataclasses import dataclass
 
 import numpy as np
 import torch
-from PIL import Image
 
+from ..data.depth_maps import INDEX_FILE, DepthMaps, read_depth_maps
 from ..data.preprocess import crop_geometry
 from ..errors import DataError
 
-DEPTH_FORMAT = "codecsplat-depth-v1"
-DEPTH_FILE = "depth.json"
 DELTA_THRESHOLD = 1.25
-
-
-@dataclass(frozen=True)
-class DepthMaps:
-    """The depth maps of one scene's depth folder.
-
-    Attributes:
-        depth: float32 [N,h,w] camera-z depth in scene units, 0 where there is none.
-        frames: the N image paths as in the scene (e.g. ``images/x.jpg``), matching its ``frame_names``.
-    """
-
-    depth: torch.Tensor
-    frames: list[str]
-
-
-def read_depth_maps(folder) -> DepthMaps:
-    """Every depth map of one scene's depth folder (``depth.json`` and its PNGs, see the module docstring).
-
-    Raises:
-        DataError: no readable ``depth.json``, another format, a field missing or of the wrong type, or a PNG
-            that is missing, unreadable, not 16-bit single-channel or not of the stated size (naming the file).
-    """
-    file = pathlib.Path(folder) / DEPTH_FILE
-    try:
-        header = json.loads(file.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DataError(f"{file}: not a readable depth file ({type(exc).__name__}: {exc})") from None
-    if not isinstance(header, dict) or header.get("format") != DEPTH_FORMAT:
-        found = header.get("format") if isinstance(header, dict) else type(header).__name__
-        raise DataError(f"{file}: format must be {DEPTH_FORMAT!r}, got {found!r}")
-    scale, width, height, frames = (header.get(k) for k in ("scale", "width", "height", "frames"))
-    if not isinstance(scale, (int, float)) or isinstance(scale, bool) or not math.isfinite(scale) or scale <= 0:
-        raise DataError(f"{file}: scale must be a positive number, got {scale!r}")
-    if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in (width, height)):
-        raise DataError(f"{file}: width and height must be positive integers, got {width!r}, {height!r}")
-    if not isinstance(frames, list) or not all(
-            isinstance(f, dict) and isinstance(f.get("file"), str) and isinstance(f.get("depth"), str) for f in frames):
-        raise DataError(f"{file}: frames must be a list of objects with 'file' and 'depth' paths")
-    depth = [_read_png(file.parent / f["depth"], width, height) * scale for f in frames]
-    return DepthMaps(torch.from_numpy(np.stack(depth) if depth else np.zeros((0, height, width))).float(),
-                     [f["file"] for f in frames])
-
-
-def _read_png(path: pathlib.Path, width: int, height: int) -> np.ndarray:
-    """float64 [height,width] values of a 16-bit single-channel PNG; DataError naming the file otherwise."""
-    try:
-        with Image.open(path) as image:
-            values = np.asarray(image)
-    except (OSError, ValueError) as exc:
-        raise DataError(f"{path}: cannot read the depth PNG ({exc})") from None
-    if values.dtype not in (np.uint16, np.int32) or values.ndim != 2:
-        raise DataError(f"{path}: a depth map must be a 16-bit single-channel PNG, got {values.dtype} {values.shape}")
-    if values.shape != (height, width):
-        raise DataError(f"{path}: {values.shape[1]}x{values.shape[0]} pixels, {DEPTH_FILE} says {width}x{height}")
-    return values.astype(np.float64)
 
 
 def to_sample_grid(depth: np.ndarray, stored_size: tuple[int, int], size: tuple[int, int]) -> np.ndarray:
@@ -137,7 +77,7 @@ class ReferenceDepth:
     def _maps(self, scene: str) -> DepthMaps | None:
         if self._scene is None or self._scene[0] != scene:
             folder = self.root / scene
-            self._scene = scene, read_depth_maps(folder) if (folder / DEPTH_FILE).is_file() else None
+            self._scene = scene, read_depth_maps(folder) if (folder / INDEX_FILE).is_file() else None
         return self._scene[1]
 
 

@@ -91,9 +91,9 @@ TABLE1_COLUMNS = [("method", "Method", "s"), ("setting", "Codec Setting", "s"), 
                   ("psnr", "PSNR ↑", ".2f"), ("ssim", "SSIM ↑", ".3f"), ("lpips_vgg", "LPIPS-VGG ↓", ".3f"),
                   ("lpips_alex", "LPIPS-Alex ↓", ".3f"), ("self_psnr", "Self-render PSNR ↑", ".2f"),
                   ("depth_abs_rel", "Depth AbsRel ↓", ".3f"), ("depth_delta_1_25", "Depth δ<1.25 ↑", ".3f")]
-TABLE3_COLUMNS = [("method", "Method", "s"), ("setting", "Codec Setting", "s"), ("self_psnr", "PSNR ↑", ".2f"),
-                  ("self_ssim", "SSIM ↑", ".3f"), ("self_lpips_vgg", "LPIPS-VGG ↓", ".3f"),
-                  ("self_lpips_alex", "LPIPS-Alex ↓", ".3f"), ("depth_abs_rel", "Depth AbsRel ↓", ".3f"),
+TABLE3_COLUMNS = [("method", "Method", "s"), ("setting", "Codec Setting", "s"), ("self_psnr", "Self PSNR ↑", ".2f"),
+                  ("self_ssim", "Self SSIM ↑", ".3f"), ("self_lpips_vgg", "Self LPIPS-VGG ↓", ".3f"),
+                  ("self_lpips_alex", "Self LPIPS-Alex ↓", ".3f"), ("depth_abs_rel", "Depth AbsRel ↓", ".3f"),
                   ("depth_delta_1_25", "Depth δ<1.25 ↑", ".3f"), ("depth_samples", "Depth samples", "d")]
 TABLE2_COLUMNS = [("method", "Method", "s"), ("setting", "Codec Setting", "s"), ("gen_s", "GS Gen. T. ↓", ".3f"),
                   ("compress_s", "Compress T. ↓", ".3f"), ("decompress_s", "Decompress T. ↓", ".3f")]
