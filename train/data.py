@@ -40,6 +40,7 @@ from torch.nn import functional as F
 
 from codecsplat_warp.cameras import Cameras
 from codecsplat_warp.data.chunks import load_index, read_chunk
+from codecsplat_warp.data.depth_maps import INDEX_FILE, read_depth_maps
 from codecsplat_warp.data.scene import Scene
 from codecsplat_warp.data.views import (BoundedSamplerConfig, context_gap_bounds, sample_bounded_views,
                                         split_context_targets)
@@ -347,10 +348,8 @@ def reference_depth(scene_folder: pathlib.Path, frame_names: list[str], height: 
         DataError: the depth folder exists but is unreadable, or lacks a depth map of one of the frames.
     """
     folder = scene_folder / DEPTH_FOLDER
-    if not (folder / "depth.json").is_file():
+    if not (folder / INDEX_FILE).is_file():
         return torch.zeros(len(frame_names), height, width)
-    from codecsplat_warp.data.depth_maps import read_depth_maps
-
     maps = read_depth_maps(folder)
     depth = maps.depth[[maps.frame_index(name) for name in frame_names]]
     return F.interpolate(depth[:, None].float(), size=(height, width), mode="nearest-exact")[:, 0]
