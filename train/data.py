@@ -341,8 +341,10 @@ writes it (multi-view stereo depth of every view, 0 where no consistent depth wa
 
 
 def reference_depth(scene_folder: pathlib.Path, frame_names: list[str], height: int, width: int) -> torch.Tensor:
-    """float32 [N,height,width] depth of a scene's frames (camera z, scene units; 0 = unknown) from its
-    :data:`DEPTH_FOLDER`, each map resized (nearest) to the image size; all zero when the scene has none.
+    """float32 [N,h,w] depth of a scene's frames (camera z, scene units; 0 = unknown) from its
+    :data:`DEPTH_FOLDER`, at the depth maps' own size (they cover the photographs' extent, and
+    :func:`random_resized_crop` samples them once, to the crop); all zero at the image size (``height`` x
+    ``width``) when the scene has none.
 
     Raises:
         DataError: the depth folder exists but is unreadable, or lacks a depth map of one of the frames.
@@ -351,8 +353,7 @@ def reference_depth(scene_folder: pathlib.Path, frame_names: list[str], height: 
     if not (folder / INDEX_FILE).is_file():
         return torch.zeros(len(frame_names), height, width)
     maps = read_depth_maps(folder)
-    depth = maps.depth[[maps.frame_index(name) for name in frame_names]]
-    return F.interpolate(depth[:, None].float(), size=(height, width), mode="nearest-exact")[:, 0]
+    return maps.depth[[maps.frame_index(name) for name in frame_names]]
 
 
 class RealScenes:
@@ -372,8 +373,8 @@ class RealScenes:
         self._cache: dict[str, tuple[torch.Tensor, Cameras, torch.Tensor]] = {}
 
     def scene(self, name: str) -> tuple[torch.Tensor, Cameras, torch.Tensor]:
-        """uint8 [N,3,h,w] images, float64 cameras (scene's own near/far) and float32 reference depth [N,h,w]
-        (0 = unknown) of a scene at its stored size."""
+        """uint8 [N,3,h,w] images and float64 cameras (scene's own near/far) of a scene at its stored size, and its
+        float32 reference depth (:func:`reference_depth`; 0 = unknown)."""
         if name not in self._cache:
             from codecsplat_warp.data.scene_json import load_scene_json
 
