@@ -13,6 +13,7 @@ from conftest import needs_lpips
 
 from codecsplat_warp.codec import LAMBDA_MAX, LAMBDA_MIN
 from codecsplat_warp.errors import DataError, InputError
+from codecsplat_warp.metrics import LPIPS
 from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.nn.config import get_preset
 from codecsplat_warp.model.pretrained import save_pretrained
@@ -21,7 +22,8 @@ from train.data import DataSpec, make_source
 from train.stage1 import METRICS_FILE, TrainConfig, make_optimizer
 from test_train_stage1 import assert_same_weight_average
 from train.stage2 import (
-    Stage2Config, build_stage2_model, parse_args, rate_ramp, rate_weight, run_model_config, sample_lambda, train,
+    Stage2Config, build_stage2_model, parse_args, rate_ramp, rate_weight, run_model_config, sample_lambda,
+    stage2_loss, train,
 )
 
 TINY = get_preset("tiny")
@@ -147,6 +149,21 @@ def test_resumed_run_gives_the_same_next_step_loss_and_logs_coded_rate(tmp_path)
     for name, value in stage1.state_dict().items():
         if not name.startswith("depth_head."):  # stage 1 trained it as an auxiliary; stage 2 goes on training it
             assert torch.equal(trained.state_dict()[name], value), f"frozen {name} changed"
+
+
+@needs_lpips
+def test_self_render_weight_adds_the_decoded_gaussians_render_loss_on_the_context_views(tmp_path):
+    _stage1_run(tmp_path / "s1")
+    model = build_stage2_model(TINY, Stage2Config(init=str(tmp_path / "s1"), out=str(tmp_path / "s2"))).train()
+    lpips = LPIPS(weights_dir=WEIGHTS)
+    batch = make_source("procedural", DataSpec(views=(2,), sizes=((32, 48),), targets=1, batch_views=4), seed=3)(0)
+    losses = {}
+    for weight in (0.0, 0.5):
+        torch.manual_seed(0)
+        loss, metrics = stage2_loss(model, lpips, batch, Stage2Config(self_render_weight=weight), step=4)
+        losses[weight] = float(loss.detach())
+        assert ("self_psnr" in metrics) == (weight > 0)
+    assert 5.0 < float(metrics["self_psnr"]) < 60.0 and losses[0.5] > losses[0.0]
 
 
 @pytest.mark.slow

@@ -207,6 +207,14 @@ def render_distortion(rgb: torch.Tensor, target: torch.Tensor, lpips: LPIPS, lpi
             "psnr": psnr(rgb.detach(), target).mean()}
 
 
+def self_render_distortion(model: CodecSplat, gaussians: Gaussians, batch: TrainingBatch, lpips: LPIPS,
+                           lpips_weight: float) -> dict:
+    """:func:`render_distortion` of each scene's Gaussians rendered into its own context views, against the
+    context images (the self-render loss of ``--self-render-weight``)."""
+    return render_distortion(render_targets(model, gaussians, batch, context=True), batch.context_images, lpips,
+                             lpips_weight)
+
+
 def reference_depth_loss(depth: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Masked log-depth L1: mean of |log depth - log reference| over the pixels whose reference is known.
 
@@ -244,8 +252,7 @@ def stage1_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBatch, conf
     metrics = {"psnr": parts["psnr"], "depth_aux": depth_aux.detach(), "depth_ref": depth_ref.detach(),
                "depth_ref_pixels": known}
     if config.self_render_weight > 0:
-        own = render_distortion(render_targets(bare, out["gaussians"], batch, context=True), batch.context_images,
-                                lpips, config.lpips_weight)
+        own = self_render_distortion(bare, out["gaussians"], batch, lpips, config.lpips_weight)
         loss = loss + config.self_render_weight * own["render"]
         metrics["self_psnr"] = own["psnr"]
     return loss, {"loss": loss.detach(), "mse": parts["mse"].detach(), "lpips": parts["lpips"].detach(), **metrics}
