@@ -6,8 +6,8 @@ has seen it). CI runs ``codecsplat demo`` (README command 1) before the tests, s
 is checked when present; otherwise the demo runs here (one to two minutes on a 2-core CPU).
 
 The floor: every decoded bitstream and the codec-free path must score :data:`MARGIN_DB` above copying the nearest
-context photograph (mean PSNR of the two targets). Model e5fda6897d2c4061 on the 2-core EPYC: copy-nearest 16.29 dB,
-codec-free 21.58 dB (+5.29), λ = 16 / 128 / 1024 19.30 / 19.84 / 19.89 dB (+3.01 / +3.56 / +3.60).
+context photograph (mean PSNR of the two targets). Model 554cc15fd43d1f3e on the 2-core EPYC: copy-nearest 16.29 dB,
+codec-free 21.30 dB (+5.02), λ = 16 / 128 / 1024 19.24 / 19.71 / 19.90 dB (+2.95 / +3.42 / +3.62).
 """
 
 from __future__ import annotations
