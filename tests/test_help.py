@@ -14,7 +14,7 @@ import pytest
 from codecsplat_warp import cli
 from codecsplat_warp.bench import extreme
 from codecsplat_warp.model import report
-from train import codec_limits, curves, export, heldout, pack_scenes, stage1, stage2, validate
+from train import codec_limits, curves, export, heldout, pack_scenes, self_render_bounds, stage1, stage2, validate
 
 ENTRY_POINTS = {
     "codecsplat": cli.build_parser,
@@ -28,6 +28,7 @@ ENTRY_POINTS = {
     "python -m train.heldout": heldout.build_parser,
     "python -m train.curves": curves.build_parser,
     "python -m train.codec_limits": codec_limits.build_parser,
+    "python -m train.self_render_bounds": self_render_bounds.build_parser,
 }
 
 
