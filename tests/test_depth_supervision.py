@@ -18,7 +18,7 @@ from train.stage1 import TrainConfig, reference_depth_loss, stage1_loss
 
 from codecsplat_warp.data.depth_maps import DEPTH_FORMAT, INDEX_FILE, depth_scale, quantize_depth
 from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
-from codecsplat_warp.errors import DataError
+from codecsplat_warp.errors import DataError, InputError
 from codecsplat_warp.metrics import LPIPS
 from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.nn.config import get_preset
@@ -78,6 +78,35 @@ def test_self_render_weight_scores_the_context_views_and_adds_their_render_loss(
     torch.manual_seed(0)
     both, metrics = stage1_loss(model, lpips, batch, TrainConfig(self_render_weight=0.5))
     assert "self_psnr" not in plain_metrics and 5.0 < float(metrics["self_psnr"]) < 60.0
+    assert float(both.detach()) > float(plain.detach())
+
+
+def test_render_own_views_renders_each_views_gaussians_alone_into_its_own_camera():
+    torch.manual_seed(0)
+    model = CodecSplat(get_preset("tiny")).eval()
+    batch = make_source("procedural", DataSpec(views=(2,), sizes=((32, 48),), targets=1, batch_views=4), seed=3)(0)
+    with torch.no_grad():
+        gaussians = model(batch.context_images, batch.context_cameras, scenes=batch.scenes)["gaussians"]
+        own = model.render_own_views(gaussians, batch.context_cameras)
+        second = gaussians.split(4)[1]
+        alone = model.render(second, batch.context_cameras.select([1]))["rgb"]
+        together = model.render(gaussians, batch.context_cameras.select([1]))["rgb"]
+    assert own.shape == (4, 3, 32, 48)
+    assert torch.equal(own[1:2], alone) and not torch.allclose(own[1:2], together)
+    with pytest.raises(InputError, match="pixel-aligned Gaussians of the 3 views"):
+        model.render_own_views(second, batch.context_cameras.select([0, 1, 2]))
+
+
+@needs_lpips
+def test_own_render_weight_adds_the_render_loss_of_each_views_gaussians_alone():
+    torch.manual_seed(0)
+    model = CodecSplat(get_preset("tiny")).train()
+    lpips = LPIPS(weights_dir=WEIGHTS)
+    batch = make_source("procedural", DataSpec(views=(2,), sizes=((32, 48),), targets=1, batch_views=4), seed=3)(0)
+    plain, plain_metrics = stage1_loss(model, lpips, batch, TrainConfig())
+    torch.manual_seed(0)
+    both, metrics = stage1_loss(model, lpips, batch, TrainConfig(own_render_weight=0.5))
+    assert "own_psnr" not in plain_metrics and "self_psnr" not in metrics and 5.0 < float(metrics["own_psnr"]) < 60.0
     assert float(both.detach()) > float(plain.detach())
 
 

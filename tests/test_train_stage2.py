@@ -152,7 +152,8 @@ def test_resumed_run_gives_the_same_next_step_loss_and_logs_coded_rate(tmp_path)
 
 
 @needs_lpips
-def test_self_render_weight_adds_the_decoded_gaussians_render_loss_on_the_context_views(tmp_path):
+@pytest.mark.parametrize("option, metric", [("self_render_weight", "self_psnr"), ("own_render_weight", "own_psnr")])
+def test_context_render_weights_add_the_decoded_gaussians_render_loss_on_the_context_views(tmp_path, option, metric):
     _stage1_run(tmp_path / "s1")
     model = build_stage2_model(TINY, Stage2Config(init=str(tmp_path / "s1"), out=str(tmp_path / "s2"))).train()
     lpips = LPIPS(weights_dir=WEIGHTS)
@@ -160,10 +161,10 @@ def test_self_render_weight_adds_the_decoded_gaussians_render_loss_on_the_contex
     losses = {}
     for weight in (0.0, 0.5):
         torch.manual_seed(0)
-        loss, metrics = stage2_loss(model, lpips, batch, Stage2Config(self_render_weight=weight), step=4)
+        loss, metrics = stage2_loss(model, lpips, batch, Stage2Config(**{option: weight}), step=4)
         losses[weight] = float(loss.detach())
-        assert ("self_psnr" in metrics) == (weight > 0)
-    assert 5.0 < float(metrics["self_psnr"]) < 60.0 and losses[0.5] > losses[0.0]
+        assert (metric in metrics) == (weight > 0)
+    assert 5.0 < float(metrics[metric]) < 60.0 and losses[0.5] > losses[0.0]
 
 
 @pytest.mark.slow

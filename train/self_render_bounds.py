@@ -83,11 +83,7 @@ def self_render_psnr(model: CodecSplat, gaussians: Gaussians, cameras: Cameras, 
         images: [V,3,H,W] context images in [0,1].
         own_only: render only view v's H*W Gaussians into camera v; else all Gaussians into every camera.
     """
-    if own_only:
-        rgb = torch.cat([model.render(piece, cameras.select([v]))["rgb"]
-                         for v, piece in enumerate(gaussians.split(cameras.num_views))])
-    else:
-        rgb = model.render(gaussians, cameras)["rgb"]
+    rgb = model.render_own_views(gaussians, cameras) if own_only else model.render(gaussians, cameras)["rgb"]
     return float(psnr(rgb, images).mean())
 
 

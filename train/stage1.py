@@ -111,6 +111,7 @@ class TrainConfig:
     depth_aux_weight: float = 0.1
     depth_weight: float = 0.0
     self_render_weight: float = 0.0
+    own_render_weight: float = 0.0
     ema_decay: float = 0.999
 
 
@@ -153,13 +154,16 @@ OPTION_HELP = {
     "depth_weight": "weight of the log-depth L1 against the scenes' reference depth where it is known (exact for "
                     "procedural scenes, multi-view stereo from codecsplat depth for real ones); 0: off",
     "self_render_weight": "weight of the render loss on the context views themselves; 0: off",
+    "own_render_weight": "weight of the render loss of each context view's own Gaussians alone, in its own camera "
+                         "(pixel-aligned Gaussians that stand without the other views'); 0: off",
     "ema_decay": "decay of the weights' exponential moving average, which export, validation and warm starts use "
                  "(0: keep none)",
 }
 """``--help`` text of every :class:`TrainConfig` field (its default is appended when it has one)."""
 
 
-LOGGED = ("loss", "mse", "lpips", "psnr", "depth_aux", "depth_ref", "depth_ref_pixels", "self_psnr", "grad_norm", "lr")
+LOGGED = ("loss", "mse", "lpips", "psnr", "depth_aux", "depth_ref", "depth_ref_pixels", "self_psnr", "own_psnr",
+          "grad_norm", "lr")
 """Training metrics written every ``log_every`` steps (TensorBoard and :data:`METRICS_FILE`), averaged over the
 step's batches (micro-batches and DDP ranks); each record also has ``step``, ``elapsed_s`` (wall seconds since
 this process started training, resumed chunks restart it), ``scenes`` (global scenes in the record's step)
@@ -215,6 +219,30 @@ def self_render_distortion(model: CodecSplat, gaussians: Gaussians, batch: Train
                              lpips_weight)
 
 
+def own_render_distortion(model: CodecSplat, gaussians: Gaussians, batch: TrainingBatch, lpips: LPIPS,
+                          lpips_weight: float) -> dict:
+    """:func:`render_distortion` of each context view's own Gaussians rendered alone into its own camera
+    (:meth:`CodecSplat.render_own_views`), against the context images (the loss of ``--own-render-weight``)."""
+    return render_distortion(model.render_own_views(gaussians, batch.context_cameras), batch.context_images, lpips,
+                             lpips_weight)
+
+
+def context_render_terms(model: CodecSplat, gaussians: Gaussians, batch: TrainingBatch, lpips: LPIPS,
+                         config: "TrainConfig") -> tuple[torch.Tensor | float, dict]:
+    """The weighted sum of the context-view render losses that ``config`` turns on (``self_render_weight``,
+    ``own_render_weight``; 0.0 when none is) and their PSNRs (``self_psnr``, ``own_psnr``, detached)."""
+    total, metrics = 0.0, {}
+    if config.self_render_weight > 0:
+        own = self_render_distortion(model, gaussians, batch, lpips, config.lpips_weight)
+        total = total + config.self_render_weight * own["render"]
+        metrics["self_psnr"] = own["psnr"]
+    if config.own_render_weight > 0:
+        alone = own_render_distortion(model, gaussians, batch, lpips, config.lpips_weight)
+        total = total + config.own_render_weight * alone["render"]
+        metrics["own_psnr"] = alone["psnr"]
+    return total, metrics
+
+
 def reference_depth_loss(depth: torch.Tensor, reference: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Masked log-depth L1: mean of |log depth - log reference| over the pixels whose reference is known.
 
@@ -251,10 +279,9 @@ def stage1_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBatch, conf
     loss = parts["render"] + config.depth_aux_weight * depth_aux + config.depth_weight * depth_ref
     metrics = {"psnr": parts["psnr"], "depth_aux": depth_aux.detach(), "depth_ref": depth_ref.detach(),
                "depth_ref_pixels": known}
-    if config.self_render_weight > 0:
-        own = self_render_distortion(bare, out["gaussians"], batch, lpips, config.lpips_weight)
-        loss = loss + config.self_render_weight * own["render"]
-        metrics["self_psnr"] = own["psnr"]
+    context_loss, context_metrics = context_render_terms(bare, out["gaussians"], batch, lpips, config)
+    loss = loss + context_loss
+    metrics.update(context_metrics)
     return loss, {"loss": loss.detach(), "mse": parts["mse"].detach(), "lpips": parts["lpips"].detach(), **metrics}
 
 

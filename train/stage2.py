@@ -66,7 +66,8 @@ RATE_WEIGHTS = {"dl3dv": 1e-4}
 DEFAULT_RATE_WEIGHT = 4e-4
 
 LOGGED = ("loss", "mse", "lpips", "psnr", "depth_l1", "depth_ref", "depth_ref_pixels", "feature_error", "feature_weight",
-          "self_psnr", "lambda", "bits", "bpp", "grad_norm", "lr", "coded_bits", "coded_estimate_bits", "rate_gap", "train_rate_gap")
+          "self_psnr", "own_psnr", "lambda", "bits", "bpp", "grad_norm", "lr", "coded_bits", "coded_estimate_bits",
+          "rate_gap", "train_rate_gap")
 """Metrics written every ``log_every`` steps (the coded_* ones only on steps that encode)."""
 
 
@@ -101,6 +102,8 @@ OPTION_HELP = {
     "gamma": "weight of the depth term |S - S_enc|_1 inside the lambda bracket (Eq. 16)",
     "self_render_weight": "weight of the decoded Gaussians' render loss on the context views themselves, inside "
                           "the lambda bracket; 0: off",
+    "own_render_weight": "weight of the render loss of each context view's own decoded Gaussians alone, in its own "
+                         "camera, inside the lambda bracket; 0: off",
     "beta": "weight of the rate in bits per context pixel (default: 1e-4 for the dl3dv preset, else 4e-4)",
     "rate_warmup_steps": "steps over which beta ramps up linearly from 0 (0: full rate from the first step)",
     "coded_every": "really encode the step's scene every this many steps and log the coded bits",
@@ -172,10 +175,9 @@ def stage2_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBatch, conf
                "psnr": parts["psnr"], "feature_error": feature_error.detach(),
                "feature_weight": alpha, "lambda": lam, "bits": out["rate_bits"].detach() / batch.scenes,
                "bpp": bpp.detach()}
-    if config.self_render_weight > 0:
-        own = stage1.self_render_distortion(bare, out["gaussians"], batch, lpips, config.lpips_weight)
-        loss = loss + lam / LAMBDA_MAX * config.self_render_weight * own["render"]
-        metrics["self_psnr"] = own["psnr"]
+    context_loss, context_metrics = stage1.context_render_terms(bare, out["gaussians"], batch, lpips, config)
+    loss = loss + lam / LAMBDA_MAX * context_loss
+    metrics.update(context_metrics)
     if (step + 1) % config.coded_every == 0:
         metrics.update(coded_rate(bare, batch, lam, float(out["rate_bits"].detach())))
     return loss, metrics

@@ -257,6 +257,20 @@ class CodecSplat(nn.Module):
         return {"rgb": rgb.permute(0, 3, 1, 2), "alpha": alpha[..., 0],
                 "depth": depth[..., 0] if depth is not None else None, "meta": meta}
 
+    def render_own_views(self, gaussians: Gaussians, cameras: Cameras) -> torch.Tensor:
+        """[V,3,H,W]: each context view's own Gaussians rendered alone into its own camera (float32).
+
+        ``gaussians`` are the pixel-aligned Gaussians of the V ``cameras``, view-major (V equal pieces, as
+        :meth:`forward` makes them; a training batch's views of several scenes included). Raises InputError unless
+        there are V*H*W of them.
+        """
+        expected = cameras.num_views * cameras.height * cameras.width
+        if len(gaussians) != expected:
+            raise InputError(f"render_own_views needs the pixel-aligned Gaussians of the {cameras.num_views} views, "
+                             f"{expected} (V*H*W), got {len(gaussians)}")
+        pieces = gaussians.split(cameras.num_views)
+        return torch.cat([self.render(piece, cameras.select([v]))["rgb"] for v, piece in enumerate(pieces)])
+
     def _require_codec(self) -> None:
         if not self.has_codec:
             raise InputError("this CodecSplat has no codec (a stage-1 model, built with codec=False): build it with "
