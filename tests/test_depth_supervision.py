@@ -68,19 +68,6 @@ def test_depth_weight_sends_the_reference_depth_into_the_encoder_gradient():
     assert not torch.allclose(without, with_depth)
 
 
-@needs_lpips
-def test_self_render_weight_scores_the_context_views_and_adds_their_render_loss():
-    torch.manual_seed(0)
-    model = CodecSplat(get_preset("tiny")).train()
-    lpips = LPIPS(weights_dir=WEIGHTS)
-    batch = make_source("procedural", DataSpec(views=(2,), sizes=((32, 48),), targets=1, batch_views=4), seed=3)(0)
-    plain, plain_metrics = stage1_loss(model, lpips, batch, TrainConfig())
-    torch.manual_seed(0)
-    both, metrics = stage1_loss(model, lpips, batch, TrainConfig(self_render_weight=0.5))
-    assert "self_psnr" not in plain_metrics and 5.0 < float(metrics["self_psnr"]) < 60.0
-    assert float(both.detach()) > float(plain.detach())
-
-
 def test_render_own_views_renders_each_views_gaussians_alone_into_its_own_camera():
     torch.manual_seed(0)
     model = CodecSplat(get_preset("tiny")).eval()
@@ -98,15 +85,19 @@ def test_render_own_views_renders_each_views_gaussians_alone_into_its_own_camera
 
 
 @needs_lpips
-def test_own_render_weight_adds_the_render_loss_of_each_views_gaussians_alone():
+@pytest.mark.parametrize("option, metric, other", [("self_render_weight", "self_psnr", "own_psnr"),
+                                                   ("own_render_weight", "own_psnr", "self_psnr")])
+def test_context_render_weights_score_the_context_views_and_add_their_render_loss(option, metric, other):
+    """--self-render-weight: all Gaussians of a scene in its context views; --own-render-weight: each view's own
+    Gaussians alone in its own camera."""
     torch.manual_seed(0)
     model = CodecSplat(get_preset("tiny")).train()
     lpips = LPIPS(weights_dir=WEIGHTS)
     batch = make_source("procedural", DataSpec(views=(2,), sizes=((32, 48),), targets=1, batch_views=4), seed=3)(0)
     plain, plain_metrics = stage1_loss(model, lpips, batch, TrainConfig())
     torch.manual_seed(0)
-    both, metrics = stage1_loss(model, lpips, batch, TrainConfig(own_render_weight=0.5))
-    assert "own_psnr" not in plain_metrics and "self_psnr" not in metrics and 5.0 < float(metrics["own_psnr"]) < 60.0
+    both, metrics = stage1_loss(model, lpips, batch, TrainConfig(**{option: 0.5}))
+    assert metric not in plain_metrics and other not in metrics and 5.0 < float(metrics[metric]) < 60.0
     assert float(both.detach()) > float(plain.detach())
 
 

@@ -37,6 +37,7 @@ from codecsplat_warp.eval.protocols import PROTOCOLS, Sample, find_scenes, folde
 from codecsplat_warp.gaussians import SH_C0, Gaussians
 from codecsplat_warp.metrics.image import psnr
 from codecsplat_warp.model import CodecSplat, model_id
+from codecsplat_warp.model.heads import pixel_footprint
 from codecsplat_warp.model.pretrained import load_pretrained
 from codecsplat_warp.ops.geometry import unproject
 
@@ -63,10 +64,8 @@ def ideal_pixel_gaussians(images: torch.Tensor, depth: torch.Tensor, cameras: Ca
         V*H*W Gaussians, view-major, float32, SH degree 0 with DC ``(rgb - 0.5) / SH_C0`` (renders the pixel's
         colour), identity rotations.
     """
-    views, _, height, width = images.shape
     means = unproject(depth.float(), cameras).reshape(-1, 3)
-    focal = 0.5 * (cameras.K[:, 0, 0] + cameras.K[:, 1, 1]).float()
-    scales = (depth.float() / focal[:, None, None] * scale_px).reshape(-1, 1).expand(-1, 3).contiguous()
+    scales = (pixel_footprint(depth.float(), cameras) * scale_px).reshape(-1, 1).expand(-1, 3).contiguous()
     quats = torch.zeros(len(means), 4, device=means.device)
     quats[:, 0] = 1.0
     colours = images.float().permute(0, 2, 3, 1).reshape(-1, 1, 3)

@@ -211,35 +211,23 @@ def render_distortion(rgb: torch.Tensor, target: torch.Tensor, lpips: LPIPS, lpi
             "psnr": psnr(rgb.detach(), target).mean()}
 
 
-def self_render_distortion(model: CodecSplat, gaussians: Gaussians, batch: TrainingBatch, lpips: LPIPS,
-                           lpips_weight: float) -> dict:
-    """:func:`render_distortion` of each scene's Gaussians rendered into its own context views, against the
-    context images (the self-render loss of ``--self-render-weight``)."""
-    return render_distortion(render_targets(model, gaussians, batch, context=True), batch.context_images, lpips,
-                             lpips_weight)
-
-
-def own_render_distortion(model: CodecSplat, gaussians: Gaussians, batch: TrainingBatch, lpips: LPIPS,
-                          lpips_weight: float) -> dict:
-    """:func:`render_distortion` of each context view's own Gaussians rendered alone into its own camera
-    (:meth:`CodecSplat.render_own_views`), against the context images (the loss of ``--own-render-weight``)."""
-    return render_distortion(model.render_own_views(gaussians, batch.context_cameras), batch.context_images, lpips,
-                             lpips_weight)
-
-
 def context_render_terms(model: CodecSplat, gaussians: Gaussians, batch: TrainingBatch, lpips: LPIPS,
                          config: "TrainConfig") -> tuple[torch.Tensor | float, dict]:
-    """The weighted sum of the context-view render losses that ``config`` turns on (``self_render_weight``,
-    ``own_render_weight``; 0.0 when none is) and their PSNRs (``self_psnr``, ``own_psnr``, detached)."""
+    """The weighted sum of the context-view render losses that ``config`` turns on (0.0 when none is) and their
+    PSNRs (detached): ``self_render_weight``, each scene's Gaussians rendered into its own context views
+    (``self_psnr``); ``own_render_weight``, each context view's own Gaussians alone in its own camera
+    (:meth:`CodecSplat.render_own_views`, ``own_psnr``); both :func:`render_distortion` against the context
+    images."""
+    renders = (
+        (config.self_render_weight, "self_psnr", lambda: render_targets(model, gaussians, batch, context=True)),
+        (config.own_render_weight, "own_psnr", lambda: model.render_own_views(gaussians, batch.context_cameras)),
+    )
     total, metrics = 0.0, {}
-    if config.self_render_weight > 0:
-        own = self_render_distortion(model, gaussians, batch, lpips, config.lpips_weight)
-        total = total + config.self_render_weight * own["render"]
-        metrics["self_psnr"] = own["psnr"]
-    if config.own_render_weight > 0:
-        alone = own_render_distortion(model, gaussians, batch, lpips, config.lpips_weight)
-        total = total + config.own_render_weight * alone["render"]
-        metrics["own_psnr"] = alone["psnr"]
+    for weight, metric, render in renders:
+        if weight > 0:
+            parts = render_distortion(render(), batch.context_images, lpips, config.lpips_weight)
+            total = total + weight * parts["render"]
+            metrics[metric] = parts["psnr"]
     return total, metrics
 
 

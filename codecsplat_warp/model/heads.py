@@ -103,6 +103,13 @@ class PixelGaussians:
     sh: torch.Tensor
 
 
+def pixel_footprint(depth: torch.Tensor, cameras: Cameras) -> torch.Tensor:
+    """[V,H,W] world size of one pixel at each ``depth`` [V,H,W] (camera z, world units) of the V ``cameras``:
+    depth / focal, focal the mean of fx and fy (pixels); in ``depth``'s dtype."""
+    focal = 0.5 * (cameras.K[:, 0, 0] + cameras.K[:, 1, 1])
+    return depth / focal.reshape(-1, 1, 1).to(depth.dtype)
+
+
 class GaussianHead(nn.Module):
     """Eq. 11: per-pixel Gaussian attributes from a feature [V,C_F,h,w] and depth [V,H,W].
 
@@ -133,8 +140,7 @@ class GaussianHead(nn.Module):
     def _activate(self, raw: torch.Tensor, depth: torch.Tensor, cameras: Cameras) -> PixelGaussians:
         cfg = self.config
         opacity_raw, offset_raw, scale_raw, quat_raw, sh_raw = raw.split([1, 2, 3, 4, 3 * self.num_sh], dim=-1)
-        focal = 0.5 * (cameras.K[:, 0, 0] + cameras.K[:, 1, 1])
-        footprint = (depth / focal.reshape(-1, 1, 1).to(depth.dtype))[..., None]
+        footprint = pixel_footprint(depth, cameras)[..., None]
         scale_px = cfg.scale_min_px + (cfg.scale_max_px - cfg.scale_min_px) * torch.sigmoid(scale_raw)
         identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=raw.dtype, device=raw.device)
         sh = sh_raw.reshape(*sh_raw.shape[:-1], 3, self.num_sh).transpose(-1, -2) * self.sh_scale[:, None]
