@@ -107,6 +107,7 @@ class TrainConfig:
     context_gap: str = ""
     mono: str = ""
     mono_weights: str = ""
+    photometric_window: int = -1
     init: str = ""
     depth_aux_weight: float = 0.1
     depth_weight: float = 0.0
@@ -148,6 +149,8 @@ OPTION_HELP = {
                    "25-45 frames at step 0 widening to 45-192 at step 150k)",
     "mono": "monocular prior in MVEnc: none or vgg16 (frozen ImageNet VGG16; default: the preset's, none)",
     "mono_weights": "VGG16 weights for --mono vgg16 (default: lpips_vgg.safetensors of the LPIPS weights folder)",
+    "photometric_window": "odd window side of MVEnc's photometric (windowed NCC) cost volume, e.g. 5; 0: none "
+                          "(default: the preset's, none)",
     "init": "warm start from a run folder or a model file: every weight whose name and shape match "
             "(default: none, random weights)",
     "depth_aux_weight": "weight of the decoder depth head's auxiliary L1 loss on detached features",
@@ -395,9 +398,14 @@ def data_spec(config: TrainConfig, model_config: ModelConfig, world: int = 1) ->
 
 
 def stage1_model_config(config: TrainConfig) -> ModelConfig:
-    """The ``--preset`` sizes with ``--mono`` (when given) in the mono slot."""
+    """The ``--preset`` sizes with ``--mono`` (when given) in the mono slot and ``--photometric-window``
+    (when >= 0)."""
     preset = get_preset(config.preset)
-    return dataclasses.replace(preset, mono=config.mono) if config.mono else preset
+    if config.mono:
+        preset = dataclasses.replace(preset, mono=config.mono)
+    if config.photometric_window >= 0:
+        preset = dataclasses.replace(preset, photometric_window=config.photometric_window)
+    return preset
 
 
 def train(config: TrainConfig, source: BatchSource | None = None, model_config: ModelConfig | None = None,

@@ -12,7 +12,11 @@ DepthSplat-style, sized to train on one GPU:
    there are more than ``k + 1`` views);
 4. a plane-sweep cost volume over D depths uniform in inverse depth between each view's near and far
    (the Warp op :func:`codecsplat_warp.ops.geometry.plane_sweep_cost_volume`);
-5. a conv regressor turns cost volume + features into logits, a softmax over D gives ``P_depth``;
+5. a conv regressor turns cost volume + features into logits, a softmax over D gives ``P_depth``; with
+   ``ModelConfig.photometric_window`` a second, hand-made cost volume joins it: windowed NCC of the grey-level
+   images at full resolution over the same planes (:func:`codecsplat_warp.ops.mvs.photometric_cost_volume`),
+   averaged to the 1/4 grid, adds its own logits through a conv stack that starts at zero (a matcher that needs
+   no training data where the views are textured; a model trained without it is unchanged when it is added);
    the expected normalised inverse depth is bilinearly upsampled to full resolution and refined by a
    residual conv stack that sees the image (in logit space, so the depth stays inside [near, far]).
 """
@@ -31,6 +35,7 @@ from ..errors import InputError
 from ..nn.config import MODEL_STRIDE, ModelConfig
 from ..nn.layers import ResidualBlock, conv3x3, conv_stack, group_norm, resize, zero_conv
 from ..ops.geometry import inverse_depth_candidates, nearest_views, plane_sweep_cost_volume
+from ..ops.mvs import photometric_cost_volume
 from .heads import depth_from_normalized
 
 LOGIT_EPS = 1e-4
@@ -160,6 +165,9 @@ class MVEnc(nn.Module):
         self.blocks = nn.ModuleList(CrossViewBlock(c, config.attention_heads) for _ in range(config.attention_layers))
         self.regressor = conv_stack(config.depth_candidates + c, config.depth_channels, config.depth_candidates,
                                     blocks=2)
+        self.photometric_regressor = (conv_stack(config.depth_candidates, config.depth_channels,
+                                                 config.depth_candidates, blocks=1, zero_init_out=True)
+                                      if config.photometric_window else None)
         refine = config.depth_channels
         self.refine_context = nn.Conv2d(c, refine, 1)
         self.refiner = conv_stack(3 + 1 + refine, refine, 1, blocks=1, zero_init_out=True)
@@ -180,6 +188,8 @@ class MVEnc(nn.Module):
         candidates = inverse_depth_candidates(cameras, self.config.depth_candidates).float()
         cost = self._cost_volume(features, candidates, cameras, neighbours)
         logits = self.regressor(torch.cat([cost.to(features.dtype), features], dim=1))
+        if self.photometric_regressor is not None:
+            logits = logits + self._photometric_logits(images, candidates, cameras, neighbours).to(logits.dtype)
         prob = torch.softmax(logits.float(), dim=1)
         s_levels = torch.linspace(0.0, 1.0, prob.shape[1], dtype=prob.dtype, device=prob.device)
         coarse = (prob * s_levels[None, :, None, None]).sum(dim=1, keepdim=True)
@@ -201,6 +211,11 @@ class MVEnc(nn.Module):
     def _cost_volume(features, candidates, cameras, neighbours) -> torch.Tensor:
         """Warp plane sweep [V,D,h,w] in float32 (the kernels take float32/float64, not bfloat16)."""
         return plane_sweep_cost_volume(features.float(), candidates, cameras, neighbours=neighbours)
+
+    def _photometric_logits(self, images, candidates, cameras, neighbours) -> torch.Tensor:
+        """Logits [V,D,h,w] from the full-resolution windowed-NCC plane sweep, averaged over each 4x4 cell."""
+        ncc = photometric_cost_volume(images.float(), candidates, cameras, self.config.photometric_window, neighbours)
+        return self.photometric_regressor(F.avg_pool2d(ncc, MODEL_STRIDE).to(self.regressor[0].weight.dtype))
 
     def _refine(self, coarse: torch.Tensor, features: torch.Tensor, images: torch.Tensor) -> torch.Tensor:
         """Coarse S [V,1,h,w] -> refined S [V,H,W] in (0,1): bilinear upsampling plus a residual logit."""

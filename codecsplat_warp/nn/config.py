@@ -25,7 +25,7 @@ FEATURE_STRIDE = 2
 """The Gaussian-generation feature F_g lives on the 1/2-resolution grid (see :mod:`codecsplat_warp.model.feathead`)."""
 
 
-LATER_FIELDS = {"codec_finest_stride": 4}
+LATER_FIELDS = {"codec_finest_stride": 4, "photometric_window": 0}
 """ModelConfig fields that earlier model files lack, with the value those files imply."""
 
 
@@ -61,6 +61,9 @@ class ModelConfig:
         lambda_channels: size of the rate embedding e_lambda.
         mono: pretrained monocular backbone in MVEnc's mono slot: ``"none"`` or a name of
             :data:`codecsplat_warp.nn.mono.MONO_BACKBONES` (``"vgg16"``: frozen ImageNet VGG16 to relu3_3).
+        photometric_window: side (odd, pixels) of the grey-level windows of MVEnc's photometric cost volume, a
+            plane sweep of windowed NCC at full resolution next to the learned one (see
+            :mod:`codecsplat_warp.model.mvenc`); 0: none (every model shipped before 2026-11-25).
     """
 
     name: str = "custom"
@@ -86,6 +89,7 @@ class ModelConfig:
     codec_finest_stride: int = 4
     lambda_channels: int = 64
     mono: str = "none"
+    photometric_window: int = 0
 
     def __post_init__(self) -> None:
         latent = self.codec_latent_channels
@@ -122,6 +126,9 @@ class ModelConfig:
             raise InputError(f"ModelConfig.codec_finest_stride must be a power of two >= 2, got {stride!r}")
         if self.mono != "none" and self.mono not in MONO_BACKBONES:
             raise InputError(f"ModelConfig.mono must be none or one of {', '.join(MONO_BACKBONES)}, got {self.mono!r}")
+        if self.photometric_window and (self.photometric_window < 3 or self.photometric_window % 2 == 0):
+            raise InputError(f"ModelConfig.photometric_window must be 0 or an odd number >= 3, "
+                             f"got {self.photometric_window}")
         if self.num_views < 2:
             raise InputError(f"ModelConfig.num_views must be >= 2 (matching needs a second view), got {self.num_views}")
 

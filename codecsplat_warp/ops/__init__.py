@@ -4,7 +4,8 @@
   (paper Eq. 3), :func:`plane_sweep_cost_volume`, and the view-selection helpers :func:`inverse_depth_candidates`,
   :func:`all_other_views`, :func:`nearest_views`;
 * :mod:`.mvs`: :func:`mvs_depth` (posed images [V,3,H,W] -> semi-dense depth, mask, :class:`MVSDepth`) with its
-  :class:`MVSConfig`, and :func:`select_sources` (each view's source views, :class:`SourceViews`);
+  :class:`MVSConfig`, :func:`select_sources` (each view's source views, :class:`SourceViews`), and the windowed-NCC
+  plane sweep :func:`photometric_cost_volume` with its :func:`window_ncc_features`;
 * :mod:`.raster`: :func:`rasterize` (3D Gaussians -> images, gsplat's conventions, with a backward) and
   :func:`project_gaussians` (the projection step alone, -> :class:`ProjectedGaussians`), :class:`RasterMeta`;
   :func:`cpu_layout` picks how CPU calls composite (benchmarks and tests).
@@ -15,11 +16,14 @@ Shapes, dtypes and units are in each function's docstring.
 from .geometry import (
     all_other_views, inverse_depth_candidates, nearest_views, plane_sweep_cost_volume, reproject_average, unproject,
 )
-from .mvs import MVSConfig, MVSDepth, SourceViews, mvs_depth, select_sources
+from .mvs import (
+    MVSConfig, MVSDepth, SourceViews, mvs_depth, photometric_cost_volume, select_sources, window_ncc_features,
+)
 from .raster import ProjectedGaussians, RasterMeta, cpu_layout, project_gaussians, rasterize
 
 __all__ = [
     "all_other_views", "inverse_depth_candidates", "nearest_views", "plane_sweep_cost_volume", "reproject_average",
-    "unproject", "MVSConfig", "MVSDepth", "SourceViews", "mvs_depth", "select_sources", "ProjectedGaussians",
+    "unproject", "MVSConfig", "MVSDepth", "SourceViews", "mvs_depth", "photometric_cost_volume", "select_sources",
+    "window_ncc_features", "ProjectedGaussians",
     "RasterMeta", "cpu_layout", "project_gaussians", "rasterize",
 ]

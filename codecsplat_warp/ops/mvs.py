@@ -38,10 +38,14 @@ from ..checks import check_tensor, check_values
 from ..errors import InputError, MVSError
 from ..kernels import mvs as mvs_kernels
 from ..mvs_config import MAX_SOURCES, MVSConfig
+from .geometry import plane_sweep_cost_volume
 from .primitives import launch_by_rows
 
 GRAY_WEIGHTS = (0.299, 0.587, 0.114)
 """RGB -> grey level weights (ITU-R BT.601 luma)."""
+
+FLAT_WINDOW_NORM = 1e-3
+"""A window whose mean-free grey levels have a smaller norm is flat: :func:`window_ncc_features` leaves it near 0."""
 
 SELECTION_GRID = 12
 """Pixels a side of the grid :func:`select_sources` projects into the candidate views."""
@@ -100,6 +104,55 @@ class MVSDepth:
 
 # --------------------------------------------------------------------------------------------------
 # Public functions
+def window_ncc_features(images: torch.Tensor, window: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each pixel's grey-level window as a unit vector, so that a dot product of two is their NCC.
+
+    Args:
+        images: [V,3,H,W] RGB in [0,1] (float32 or float64).
+        window: odd side of the square window in pixels (>= 3); border pixels are repeated outside the image.
+
+    Returns:
+        (features [V,window**2,H,W]: the window's grey levels minus their mean, scaled to norm
+        sqrt(window) (so that :func:`~codecsplat_warp.ops.geometry.plane_sweep_cost_volume`, which divides the
+        dot product by sqrt(channels), gives the NCC in [-1, 1]); 0 where the window is flat,
+        texture [V,H,W]: the window's grey-level standard deviation).
+    """
+    images = check_tensor("images", images, ("V", 3, "H", "W"))
+    if window < 3 or window % 2 == 0:
+        raise InputError(f"window must be an odd number >= 3, got {window}")
+    weights = images.new_tensor(GRAY_WEIGHTS)[None, :, None, None]
+    gray = (images * weights).sum(1, keepdim=True)
+    V, _, H, W = images.shape
+    padded = torch.nn.functional.pad(gray, (window // 2,) * 4, mode="replicate")
+    patches = torch.nn.functional.unfold(padded, window).reshape(V, window * window, H, W)
+    patches = patches - patches.mean(1, keepdim=True)
+    norm = patches.norm(dim=1, keepdim=True)
+    features = patches * (window ** 0.5 / norm.clamp_min(FLAT_WINDOW_NORM))
+    return features, norm[:, 0] / window
+
+
+def photometric_cost_volume(images: torch.Tensor, candidates: torch.Tensor, cameras: Cameras, window: int,
+                            neighbours: torch.Tensor | None = None) -> torch.Tensor:
+    """Plane sweep of windowed NCC: ``cost[r, k, y, x]`` is the mean over r's source views of the NCC of pixel
+    (y, x)'s grey-level window with the source's window at the point where the pixel's ray meets depth
+    ``candidates[r, k]`` (fronto-parallel windows, bilinear sampling: an approximation of the homography-warped
+    window of :func:`mvs_depth` that holds for small baselines). No gradients (the images are inputs).
+
+    Args:
+        images: [V,3,H,W] RGB in [0,1], the cameras' size.
+        candidates: [V,D] or [D] depths (camera z), > 0.
+        cameras: the V cameras.
+        window: odd window side in pixels (>= 3).
+        neighbours: optional [V,M] source views of each view (default: every other view).
+
+    Returns:
+        [V,D,H,W] NCC in [-1, 1] (0 where no source sees the point or a window is flat), images' dtype.
+    """
+    with torch.no_grad():
+        features, _ = window_ncc_features(images, window)
+        return plane_sweep_cost_volume(features, candidates.to(features.dtype), cameras, neighbours)
+
+
 def mvs_depth(images: torch.Tensor, cameras: Cameras, config: MVSConfig = MVSConfig(),
               progress: Callable[[int], None] | None = None) -> MVSDepth:  # fmt: skip
     """Semi-dense depth and a confidence mask of every view of a posed scene (see the module docstring).
