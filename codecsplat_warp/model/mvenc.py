@@ -215,7 +215,7 @@ class MVEnc(nn.Module):
     def _photometric_logits(self, images, candidates, cameras, neighbours) -> torch.Tensor:
         """Logits [V,D,h,w] from the full-resolution windowed-NCC plane sweep, averaged over each 4x4 cell."""
         ncc = photometric_cost_volume(images.float(), candidates, cameras, self.config.photometric_window, neighbours)
-        return self.photometric_regressor(F.avg_pool2d(ncc, MODEL_STRIDE).to(self.regressor[0].weight.dtype))
+        return self.photometric_regressor(F.avg_pool2d(ncc, MODEL_STRIDE).to(self.photometric_regressor[0].weight.dtype))
 
     def _refine(self, coarse: torch.Tensor, features: torch.Tensor, images: torch.Tensor) -> torch.Tensor:
         """Coarse S [V,1,h,w] -> refined S [V,H,W] in (0,1): bilinear upsampling plus a residual logit."""

@@ -104,6 +104,12 @@ class MVSDepth:
 
 # --------------------------------------------------------------------------------------------------
 # Public functions
+def _gray_levels(images: torch.Tensor) -> torch.Tensor:
+    """Grey levels [V,H,W] (contiguous, images' dtype) of RGB ``images`` [V,3,H,W] by :data:`GRAY_WEIGHTS`."""
+    weights = images.new_tensor(GRAY_WEIGHTS)
+    return torch.einsum("vchw,c->vhw", images, weights).contiguous()
+
+
 def window_ncc_features(images: torch.Tensor, window: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Each pixel's grey-level window as a unit vector, so that a dot product of two is their NCC.
 
@@ -120,10 +126,8 @@ def window_ncc_features(images: torch.Tensor, window: int) -> tuple[torch.Tensor
     images = check_tensor("images", images, ("V", 3, "H", "W"))
     if window < 3 or window % 2 == 0:
         raise InputError(f"window must be an odd number >= 3, got {window}")
-    weights = images.new_tensor(GRAY_WEIGHTS)[None, :, None, None]
-    gray = (images * weights).sum(1, keepdim=True)
     V, _, H, W = images.shape
-    padded = torch.nn.functional.pad(gray, (window // 2,) * 4, mode="replicate")
+    padded = torch.nn.functional.pad(_gray_levels(images)[:, None], (window // 2,) * 4, mode="replicate")
     patches = torch.nn.functional.unfold(padded, window).reshape(V, window * window, H, W)
     patches = patches - patches.mean(1, keepdim=True)
     norm = patches.norm(dim=1, keepdim=True)
@@ -308,8 +312,7 @@ class _SweepInputs:
     @staticmethod
     def build(images: torch.Tensor, cameras: Cameras, sources: SourceViews, config: MVSConfig) -> "_SweepInputs":
         dtype, device = images.dtype, images.device
-        weights = torch.tensor(GRAY_WEIGHTS, dtype=dtype, device=device)
-        gray = torch.einsum("vchw,c->vhw", images, weights).contiguous()
+        gray = _gray_levels(images)
         own = torch.arange(cameras.num_views)[:, None].expand_as(sources.index)
         padded = torch.where(sources.index >= 0, sources.index, own)
         cams64 = cameras.to(dtype=torch.float64)
