@@ -197,11 +197,19 @@ class LatentBlock(nn.Module):
         self.post = FiLMBlock(channels, embedding)
 
     def forward(self, x: torch.Tensor, emb: torch.Tensor, lam: float, encoded: torch.Tensor | None, level: int,
-                quantize: Quantizer) -> torch.Tensor:
+                quantize: Quantizer, latent: torch.Tensor | None = None) -> torch.Tensor:
+        """One level: ``encoded`` is the bottom-up feature (None on the decoder); ``latent``, when given, is the
+        posterior mean on the gained grid to code instead of the one the posterior computes (encoder-side
+        rate-distortion optimisation, :mod:`codecsplat_warp.model.rdo`)."""
         mean, log_scale = self.prior(x).chunk(2, dim=1)
         log_gain = (base_log_gain(lam) + _at_least_float32(self.gain(emb)))[:, None, None]
         gain = log_gain.exp()
-        z = self.posterior(torch.cat([x, encoded.to(x.dtype)], dim=1)) * gain if encoded is not None else None
+        if latent is not None:
+            z = latent.to(gain.dtype)
+        elif encoded is not None:
+            z = self.posterior(torch.cat([x, encoded.to(x.dtype)], dim=1)) * gain
+        else:
+            z = None
         z_hat = quantize(level, z, mean * gain, bounded_log_scale(log_scale + log_gain)) / gain
         x = x + self.merge(torch.cat([x, z_hat.to(x.dtype)], dim=1))
         return self.post(x, emb)
@@ -271,12 +279,16 @@ class TopDown(nn.Module):
         self.ups = nn.ModuleList(Upsample2x(c) for _ in range(num_levels(config) - 1))
 
     def forward(self, emb: torch.Tensor, lam: float, views: int, shapes: list[tuple[int, int, int]],
-                encoded: list[torch.Tensor] | None, quantize: Quantizer) -> torch.Tensor:
+                encoded: list[torch.Tensor] | None, quantize: Quantizer,
+                latents: list[torch.Tensor] | None = None) -> torch.Tensor:
+        """``encoded``: the analysis features per level (None on the decoder); ``latents``: per level, posterior
+        means on the gained grid that replace the posterior's (see :meth:`LatentBlock.forward`)."""
         x = self.start.expand(views, -1, shapes[0][1], shapes[0][2])
         for level, block in enumerate(self.blocks):
             if level:
                 x = self.ups[level - 1](x)
-            x = block(x, emb, lam, encoded[level] if encoded is not None else None, level, quantize)
+            x = block(x, emb, lam, encoded[level] if encoded is not None else None, level, quantize,
+                      latents[level] if latents is not None else None)
         return x
 
 
@@ -308,17 +320,22 @@ def _at_least_float32(t: torch.Tensor) -> torch.Tensor:
 class NoisyQuantizer:
     """Training: rate at ``z + U(-0.5, 0.5)``, decoder input ``round(z - mu) + mu`` (straight-through).
 
+    Args:
+        generator: the noise's random generator, on the latents' device (None: torch's global one).
+
     Attributes:
         bits: per level, the estimated bits of each view [V] (float32, differentiable).
     """
 
-    def __init__(self):
+    def __init__(self, generator: torch.Generator | None = None):
         self.bits: list[torch.Tensor] = []
+        self.generator = generator
 
     def __call__(self, level: int, z, mean, log_scale):
         residual = z.float() - mean.float()
         rounded = residual + (torch.round(residual) - residual).detach()
-        noisy = residual + torch.rand_like(residual) - 0.5
+        noise = torch.rand(residual.shape, generator=self.generator, device=residual.device, dtype=residual.dtype)
+        noisy = residual + noise - 0.5
         self.bits.append(entropy.gaussian_bits(noisy, log_scale.float().exp()).sum(dim=(1, 2, 3)))
         return mean.float() + rounded
 
@@ -329,15 +346,18 @@ class RoundingQuantizer:
     Attributes:
         bits: per level, ideal code length of each view [V] under the discrete model.
         symbols, indices: per level, residual symbols and scale indices (int64, shape of the latent).
+        latents: per level, the posterior means it was given, on the gained grid (at least float32).
     """
 
     def __init__(self):
         self.bits: list[torch.Tensor] = []
         self.symbols: list[torch.Tensor] = []
         self.indices: list[torch.Tensor] = []
+        self.latents: list[torch.Tensor] = []
 
     def __call__(self, level: int, z, mean, log_scale):
         z, mean, log_scale = (_at_least_float32(t) for t in (z, mean, log_scale))
+        self.latents.append(z)
         mean = entropy.quantize_mean(mean)
         index = entropy.scale_index(log_scale)
         residual = torch.round(z - mean).detach()
@@ -395,11 +415,17 @@ class CompressedLatents:
         streams: one range-coded byte stream per view.
         symbols: per level (coarsest first), the coded residual symbols int64 [V,C_l,h_l,w_l] (CPU).
         bits: [V] ideal code length of each view under the discrete model (float64, CPU).
+        latents: per level, the posterior means that were coded, on the gained grid, float32 [V,C_l,h_l,w_l] on
+            the codec's device (the start of encoder-side optimisation, :meth:`LatentCodec.forward_latents`).
+        feature: F^_c [V,C_F,h,w], what the decoder will reconstruct from the streams (the codec's dtype), or
+            None unless asked for.
     """
 
     streams: list[bytes]
     symbols: list[torch.Tensor]
     bits: torch.Tensor
+    latents: list[torch.Tensor]
+    feature: torch.Tensor | None
 
 
 class LatentCodec(nn.Module):
@@ -478,39 +504,78 @@ class LatentCodec(nn.Module):
         """Differentiable pass: F_c [V,C_F,h,w] -> :class:`CodecOutput`. In training mode the quantisation
         is noisy (:class:`NoisyQuantizer`), in eval mode it is the coder's (:class:`RoundingQuantizer`)."""
         h, w = feature.shape[-2:]
-        shapes = latent_shapes(self.config, h, w)
         lam = check_lambda(lam)
         emb = self.embedding(lam)
         encoded = self.analysis(self._pad(feature), emb)
         quantizer = NoisyQuantizer() if self.training else RoundingQuantizer()
-        x = self.top_down(emb, lam, feature.shape[0], shapes, encoded, quantizer)
+        x = self.top_down(emb, lam, feature.shape[0], latent_shapes(self.config, h, w), encoded, quantizer)
         return CodecOutput(self.synthesis(x, emb)[..., :h, :w], torch.stack(quantizer.bits).sum(0))
 
+    def forward_latents(self, latents: list[torch.Tensor], lam: float, height: int, width: int,
+                        generator: torch.Generator | None = None) -> CodecOutput:
+        """Differentiable pass from given latents instead of the analysis and the posterior: per level, the
+        posterior means on the gained grid [V,C_l,h_l,w_l] (what :meth:`compress` records in
+        :attr:`CompressedLatents.latents`) -> :class:`CodecOutput` on a ``height`` x ``width`` feature grid.
+        Noisy quantisation in training mode (``generator`` draws the noise), the coder's in eval mode."""
+        lam = check_lambda(lam)
+        emb = self.embedding(lam)
+        quantizer = NoisyQuantizer(generator) if self.training else RoundingQuantizer()
+        shapes = latent_shapes(self.config, height, width)
+        x = self.top_down(emb, lam, latents[0].shape[0], shapes, None, quantizer, latents)
+        return CodecOutput(self.synthesis(x, emb)[..., :height, :width], torch.stack(quantizer.bits).sum(0))
+
     @torch.no_grad()
-    def compress(self, feature: torch.Tensor, lam: float, timer: Timer = no_timer) -> CompressedLatents:
-        """Encoder: F_c [V,C_F,h,w] -> one range-coded stream per view (:class:`CompressedLatents`).
+    def compress(self, feature: torch.Tensor, lam: float, timer: Timer = no_timer,
+                 reconstruct: bool = False) -> CompressedLatents:
+        """Encoder: F_c [V,C_F,h,w] -> one range-coded stream per view (:class:`CompressedLatents`; its
+        ``feature`` only with ``reconstruct``).
 
         The analysis runs in the feature's dtype, the prior path in float64 (see the module docstring).
         """
         lam = check_lambda(lam)
         h, w = feature.shape[-2:]
-        shapes = latent_shapes(self.config, h, w)
         encoded = self.analysis(self._pad(feature), self.embedding(lam))
-        exact = self._float64_prior_path()
-        quantizer = RoundingQuantizer()
         with torch.autocast(feature.device.type, enabled=False):
             encoded = [e.double() for e in encoded]
-            exact.top_down(exact.embedding(lam), lam, feature.shape[0], shapes, encoded, quantizer)
+        return self._code(lam, feature.shape[0], h, w, encoded, None, timer, reconstruct)
+
+    @torch.no_grad()
+    def compress_latents(self, latents: list[torch.Tensor], lam: float, height: int, width: int,
+                         timer: Timer = no_timer, reconstruct: bool = False) -> CompressedLatents:
+        """Encoder from given latents (per level, posterior means on the gained grid, as in
+        :meth:`forward_latents`) on a ``height`` x ``width`` feature grid -> :class:`CompressedLatents`: the
+        same streams that :meth:`decompress` reads, coded under the float64 prior path."""
+        lam = check_lambda(lam)
+        with torch.autocast(latents[0].device.type, enabled=False):
+            latents = [z.detach().double() for z in latents]
+        return self._code(lam, latents[0].shape[0], height, width, None, latents, timer, reconstruct)
+
+    def _code(self, lam: float, views: int, height: int, width: int, encoded: list[torch.Tensor] | None,
+              latents: list[torch.Tensor] | None, timer: Timer, reconstruct: bool) -> CompressedLatents:
+        """The float64 top-down pass with the coder's quantiser on the analysis features ``encoded`` or on
+        ``latents``, then one range-coded stream per view; with ``reconstruct`` also the decoder's F^_c."""
+        shapes = latent_shapes(self.config, height, width)
+        exact = self._float64_prior_path()
+        quantizer = RoundingQuantizer()
+        device = self.top_down.start.device
+        with torch.autocast(device.type, enabled=False):
+            x = exact.top_down(exact.embedding(lam), lam, views, shapes, encoded, quantizer, latents)
+        feature = None
+        if reconstruct:  # as the decoder does it: the model's dtype, autocast off
+            with torch.autocast(device.type, enabled=False):
+                x = x.to(self.top_down.start.dtype)
+                feature = self.synthesis(x, self.embedding(lam))[..., :height, :width]
         with timer("entropy"):
             symbols = [s.cpu() for s in quantizer.symbols]
             indices = [i.cpu() for i in quantizer.indices]
             streams = []
-            for view in range(feature.shape[0]):
+            for view in range(views):
                 encoder = entropy.new_encoder()
                 for s, i in zip(symbols, indices):
                     entropy.encode_symbols(encoder, s[view].reshape(-1).numpy(), i[view].reshape(-1).numpy())
                 streams.append(entropy.encoder_bytes(encoder))
-        return CompressedLatents(streams, symbols, torch.stack(quantizer.bits).sum(0).cpu())
+        return CompressedLatents(streams, symbols, torch.stack(quantizer.bits).sum(0).cpu(),
+                                 [z.float() for z in quantizer.latents], feature)
 
     @torch.no_grad()
     def decompress(self, streams: list[bytes], height: int, width: int, lam: float,

@@ -42,9 +42,12 @@ class EncodedScene:
         feature_bytes: range-coded payload bytes of each view's feature stream (framing excluded).
         latents: per latent level (coarsest first), the coded residual symbols int64 [V,C_l,h_l,w_l] (CPU).
         estimated_bits: [V] ideal code length of each view's latents under the discrete model (Eq. 7).
+        rdo: the encoder-side optimisation's result (``codecsplat_warp.model.rdo.RDOResult``: steps, seconds,
+            why it stopped, its checks), None for the amortised encoder alone.
     """
 
     data: bytes
     feature_bytes: list[int]
     latents: list[torch.Tensor]
     estimated_bits: torch.Tensor
+    rdo: object | None = None

@@ -45,6 +45,7 @@ from ..ops.raster import rasterize
 from .feathead import FeatHead
 from .heads import DepthHead, GaussianHead, map_to_world
 from .mvenc import MonoBackbone, MVEnc, context_neighbours
+from .rdo import optimise_latents, rdo_config
 from .refine import Refiner
 
 RENDER_NEAR_FRACTION = 0.5
@@ -159,35 +160,56 @@ class CodecSplat(nn.Module):
     # ----------------------------------------------------------------------------------------------
     # Bitstreams
     @torch.no_grad()
-    def encode_scene(self, images: torch.Tensor, cameras: Cameras, lam: float, timer: Timer = no_timer) -> EncodedScene:
+    def encode_scene(self, images: torch.Tensor, cameras: Cameras, lam: float, timer: Timer = no_timer,
+                     preset: str = "fast", steps: int | None = None, time_budget: float | None = None,
+                     seed: int = 0, progress: bool = False) -> EncodedScene:
         """Encoder: context views -> scene bitstream (Eq. 8) and the coded symbols.
 
         MVEnc, FeatHead and R_pre give F_c (bf16 autocast on CUDA), the codec quantises and range codes its
         latents, and the bitstream packs them with the cameras (at the model's float precision) and lambda
-        (as float32, the value the decoder will use). ``timer`` times the phases ``entropy`` and
-        ``bitstream`` (benchmarks; the rest is network time).
+        (as float32, the value the decoder will use). With a ``preset`` other than ``"fast"``, or ``steps`` > 0,
+        or a ``time_budget``, the latents are then optimised for this scene through the fixed decoder
+        (rate-distortion optimisation, :mod:`.rdo`): the bitstream format and the decoder stay the same. Ctrl-C
+        during the optimisation ends it early with the best latents measured so far (``rdo.stopped`` says so).
+        ``timer`` times the phases ``entropy``, ``rdo`` and ``bitstream`` (benchmarks; the rest is network time).
 
         Args:
             images: [V,3,H,W] in [0,1]; cameras: the V context cameras (both on the model's device).
             lam: rate-distortion trade-off in [16, 1024]; larger is more bytes and better quality.
+            preset: ``"fast"`` (the amortised encoder alone), ``"medium"`` or ``"slow"`` (:data:`.rdo.PRESET_STEPS`).
+            steps: optimisation steps, overriding the preset's (0: none).
+            time_budget: wall seconds the optimisation may take at most (None: no limit).
+            seed: seed of the optimisation's quantisation noise (the same seed repeats a run on the CPU).
+            progress: show the optimisation's progress bar (on a terminal).
         Raises:
-            InputError / DeviceMismatchError: as :meth:`forward`; InputError if the model has no codec.
+            InputError / DeviceMismatchError: as :meth:`forward`; InputError if the model has no codec, for an
+                unknown preset, steps < 0 or a time budget <= 0.
         """
         self._require_codec()
         lam = float(np.float32(check_lambda(lam)))
+        config = rdo_config(preset, steps, time_budget, seed)
         images = self._check_inputs(images, cameras)
         with torch.autocast(images.device.type, dtype=torch.bfloat16, enabled=images.device.type == "cuda"):
             enc = self.mvenc(images, cameras)
             f_g = self.feat_head(images, enc.features, enc.prob)
             f_c = self.refine_pre(f_g, enc.depth, cameras, enc.neighbours)
-            compressed = self.codec.compress(f_c, lam, timer)
+            compressed = self.codec.compress(f_c, lam, timer, reconstruct=config.optimises)
+        result = None
+        if config.optimises:
+            with timer("rdo"), torch.enable_grad():
+                result = optimise_latents(self, images.float(), cameras.to(dtype=torch.float32), lam, compressed,
+                                          config, progress)
+            compressed = result.compressed
         with timer("bitstream"):
             data = pack_bitstream(model_id(self), lam, cameras.to(dtype=self._dtype()), compressed.streams)
-        return EncodedScene(data, [len(s) for s in compressed.streams], compressed.symbols, compressed.bits)
+        return EncodedScene(data, [len(s) for s in compressed.streams], compressed.symbols, compressed.bits, result)
 
-    def encode(self, images: torch.Tensor, cameras: Cameras, lam: float) -> bytes:
+    def encode(self, images: torch.Tensor, cameras: Cameras, lam: float, preset: str = "fast",
+               steps: int | None = None, time_budget: float | None = None, seed: int = 0,
+               progress: bool = False) -> bytes:
         """The scene bitstream of :meth:`encode_scene` (self-contained: cameras and lambda inside)."""
-        return self.encode_scene(images, cameras, lam).data
+        return self.encode_scene(images, cameras, lam, preset=preset, steps=steps, time_budget=time_budget,
+                                 seed=seed, progress=progress).data
 
     @torch.no_grad()
     def decode_scene(self, data: bytes, device=None, timer: Timer = no_timer,

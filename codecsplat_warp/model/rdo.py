@@ -1,0 +1,391 @@
+"""Encoder-side rate-distortion optimisation (RDO): the coded latents fitted per scene through the fixed decoder.
+
+The amortised encoder (MVEnc, FeatHead, R_pre, the codec's analysis and posterior) predicts the latents in one pass.
+The encoder also has the context photographs, and the decoder (the codec's top-down pass and synthesis, the depth
+head, R_post with the Warp reprojection, the GS head, the Warp unprojection and rasterizer) is differentiable end
+to end, so the latents can be optimised against what the decoder will make of them. Nothing in the model, the
+decoder or the bitstream format changes: the optimised latents are coded by the same range coder, under the same
+priors, and any decoder of the model decodes them.
+
+What is optimised: the posterior means of every latent level on the gained grid (one quantisation step = 1), starting
+from the amortised ones, with Adam. Per step (:func:`rdo_loss`), with the codec's training quantiser (straight-through
+rounding towards the decoder, noisy rate), the loss is
+
+    (lambda / 1024) * [MSE(decoded Gaussians rendered into the context cameras, context images)
+                       + cross_view_weight * MSE(each context view predicted by the OTHER views' Gaussians alone,
+                                                 rendered over its photograph)
+                       + depth_weight * |S - S_amortised|_1]
+    + rate_weight * (estimated bits / context pixels)
+
+The cross-view term asks every view's Gaussians to explain the other photographs where they land, which the plain
+context loss does not: with two views it fits each photograph with its own Gaussians and geometry that no other
+viewpoint confirms. The depth term keeps the decoded depth near the amortised decoder's.
+
+Every ``check_every`` steps and at the end, the current latents are coded for real (the coder's rounding, the
+float64 prior path; :meth:`LatentCodec.compress_latents`) and scored by the same loss, with the discrete model's
+bits: the encoder keeps the best latents it has measured (the amortised ones are step 0), not just the last. It
+has no target views: this is the loss it can measure.
+
+Robustness: gradients that are not finite are zeroed, latents are clamped to +-:data:`LATENT_LIMIT` (far inside the
+coder's escape range), a check whose loss is not finite ends the run, and Ctrl-C (KeyboardInterrupt) during the
+steps ends it too: in every case the best latents measured so far are returned (:attr:`RDOResult.stopped` says
+why). With the same ``seed`` two runs on the CPU give the same latents.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import torch
+from torch.nn import functional as F
+
+from ..cameras import Cameras
+from ..codec.latent import LAMBDA_MAX, CompressedLatents, check_lambda
+from ..errors import InputError
+from ..gaussians import Gaussians
+from ..nn.config import FEATURE_STRIDE
+from .mvenc import context_neighbours
+
+LATENT_LIMIT = 4096.0
+"""Latents are clamped to [-LATENT_LIMIT, LATENT_LIMIT] quantisation steps after every step."""
+
+PRESET_STEPS = {"fast": 0, "medium": 100, "slow": 400}
+"""Optimisation steps of each preset: ``fast`` is the amortised encoder alone (the API's default)."""
+
+PRESETS = tuple(PRESET_STEPS)
+
+
+@dataclass(frozen=True)
+class RDOConfig:
+    """Settings of one optimisation.
+
+    Attributes:
+        steps: Adam steps (0: none, the amortised latents); None runs until ``time_budget`` is spent.
+        time_budget: wall seconds the steps may take (None: no limit); the run stops at whichever of ``steps``
+            and ``time_budget`` comes first.
+        learning_rate: Adam's step at the start, in quantisation steps of the gained grid; it falls on a cosine to
+            ``final_lr_fraction`` of that over the run (by steps, or by the budget's seconds when that ends sooner).
+        final_lr_fraction: see ``learning_rate``.
+        rate_weight: beta, the weight of the rate in bits per context pixel (the shipped model's stage-2 value).
+        cross_view_weight: weight of the cross-view term (0: off; needs at least 2 views).
+        depth_weight: weight of |S - S_amortised|_1 (0: off).
+        check_every: steps between two real codings of the latents (the best measured is kept); 0 codes only the
+            amortised latents and the last ones.
+        seed: seed of the training quantiser's noise.
+        precision: ``"float32"`` or ``"bfloat16"`` (bf16 autocast for the networks on CUDA; the geometry and the
+            rasterizer stay float32).
+    """
+
+    steps: int | None = 0
+    time_budget: float | None = None
+    learning_rate: float = 0.05
+    final_lr_fraction: float = 0.1
+    rate_weight: float = 1.3e-3
+    cross_view_weight: float = 0.0
+    depth_weight: float = 0.0
+    check_every: int = 100
+    seed: int = 0
+    precision: str = "float32"
+
+    def __post_init__(self) -> None:
+        if self.steps is None and self.time_budget is None:
+            raise InputError("RDO needs a step count or a time budget (both are None)")
+        if self.steps is not None and (isinstance(self.steps, bool) or not isinstance(self.steps, int)
+                                       or self.steps < 0):
+            raise InputError(f"RDO steps must be an integer >= 0, got {self.steps!r}")
+        if self.time_budget is not None and not (math.isfinite(self.time_budget) and self.time_budget > 0):
+            raise InputError(f"the RDO time budget must be a number of seconds > 0, got {self.time_budget!r}")
+        positive = {"learning_rate": self.learning_rate, "final_lr_fraction": self.final_lr_fraction}
+        for name, value in positive.items():
+            if not (math.isfinite(value) and value > 0):
+                raise InputError(f"RDOConfig.{name} must be > 0, got {value!r}")
+        weights = {"rate_weight": self.rate_weight, "cross_view_weight": self.cross_view_weight,
+                   "depth_weight": self.depth_weight}
+        for name, value in weights.items():
+            if not (math.isfinite(value) and value >= 0):
+                raise InputError(f"RDOConfig.{name} must be >= 0, got {value!r}")
+        if self.check_every < 0:
+            raise InputError(f"RDOConfig.check_every must be >= 0, got {self.check_every}")
+        if self.precision not in ("float32", "bfloat16"):
+            raise InputError(f"RDOConfig.precision must be float32 or bfloat16, got {self.precision!r}")
+
+    @property
+    def optimises(self) -> bool:
+        """Whether this config takes any step (False: the amortised encoder alone)."""
+        return self.steps != 0
+
+
+def rdo_config(preset: str = "fast", steps: int | None = None, time_budget: float | None = None,
+               seed: int = 0, **settings) -> RDOConfig:
+    """The :class:`RDOConfig` of a preset (:data:`PRESET_STEPS`), with ``steps`` (overrides the preset's count),
+    ``time_budget`` and any other field given.
+
+    With a ``time_budget`` and neither ``steps`` nor a preset that optimises, the steps are unlimited: the budget
+    alone ends the run.
+
+    Raises:
+        InputError: an unknown preset, steps < 0, a budget <= 0, or another bad setting.
+    """
+    if preset not in PRESET_STEPS:
+        raise InputError(f"unknown RDO preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    if steps is None:
+        steps = PRESET_STEPS[preset]
+        if time_budget is not None and steps == 0:
+            steps = None
+    return RDOConfig(steps=steps, time_budget=time_budget, seed=seed, **settings)
+
+
+@dataclass
+class RDOCheck:
+    """One real coding of the latents during a run: ``step`` (0: the amortised latents), wall ``seconds`` since
+    the run started, the measured ``loss``, the context views' ``psnr`` (dB) and the coded ``bits`` (ideal code
+    length of all views under the discrete model)."""
+
+    step: int
+    seconds: float
+    loss: float
+    psnr: float
+    bits: float
+
+
+@dataclass
+class RDOResult:
+    """What :func:`optimise_latents` returns.
+
+    Attributes:
+        compressed: the coding of the best latents measured (what the bitstream carries).
+        best_step: the step whose latents those are (0: the amortised ones).
+        steps: steps taken.
+        seconds: wall seconds of the whole optimisation, checks and the final coding included.
+        stopped: why the steps ended: ``"steps"``, ``"time"``, ``"interrupted"`` (Ctrl-C) or ``"non-finite"``.
+        checks: every real coding, in order.
+    """
+
+    compressed: CompressedLatents
+    best_step: int
+    steps: int
+    seconds: float
+    stopped: str
+    checks: list[RDOCheck] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary (without the latents)."""
+        return {"best_step": self.best_step, "steps": self.steps, "seconds": self.seconds, "stopped": self.stopped,
+                "checks": [vars(c) for c in self.checks]}
+
+
+@dataclass
+class _Target:
+    """The fixed inputs of a run: context ``images`` [V,3,H,W], ``cameras``, ``lam``, the decoder's
+    ``neighbours`` [V,M] and the amortised decoder's normalised inverse depth ``s_start`` [V,H,W]."""
+
+    images: torch.Tensor
+    cameras: Cameras
+    lam: float
+    neighbours: torch.Tensor
+    s_start: torch.Tensor | None
+
+
+def rdo_loss(model, latents: list[torch.Tensor], target: _Target, config: RDOConfig,
+             generator: torch.Generator | None = None, compressed: CompressedLatents | None = None
+             ) -> tuple[torch.Tensor, dict]:
+    """The loss of the module docstring and its parts (``mse``, ``cross``, ``depth``, ``bpp`` as 0-dim tensors).
+
+    With ``compressed`` (a real coding of ``latents``), its decoder feature and discrete-model bits replace the
+    training quantiser's: the loss the encoder measures at a check.
+    """
+    cameras, images = target.cameras, target.images
+    height, width = cameras.height, cameras.width
+    autocast = torch.autocast(images.device.type, dtype=torch.bfloat16,
+                              enabled=config.precision == "bfloat16" and images.device.type == "cuda")
+    with autocast:
+        if compressed is None:
+            coded = model.codec.forward_latents(latents, target.lam, height // FEATURE_STRIDE, width // FEATURE_STRIDE,
+                                                generator)
+            feature, bits = coded.feature, coded.bits.sum()
+        else:
+            feature, bits = compressed.feature, compressed.bits.sum().to(images.device, torch.float32)
+        s, _, gaussians = model.decode_feature(feature, cameras, target.neighbours)
+    rgb = model.render(gaussians, cameras)["rgb"]
+    parts = {"mse": F.mse_loss(rgb, images), "bpp": bits.float() / images[:, 0].numel()}
+    distortion = parts["mse"]
+    if config.cross_view_weight > 0:
+        parts["cross"] = cross_view_error(model, gaussians, cameras, images)
+        distortion = distortion + config.cross_view_weight * parts["cross"]
+    if config.depth_weight > 0 and target.s_start is not None:
+        parts["depth"] = (s.float() - target.s_start).abs().mean()
+        distortion = distortion + config.depth_weight * parts["depth"]
+    loss = target.lam / LAMBDA_MAX * distortion + config.rate_weight * parts["bpp"]
+    return loss, parts
+
+
+def cross_view_error(model, gaussians: Gaussians, cameras: Cameras, images: torch.Tensor) -> torch.Tensor:
+    """Mean squared error of each context view predicted by the other views' Gaussians alone, rendered over its
+    own photograph (so what they leave uncovered costs nothing): 0-dim. ``gaussians`` are the decoder's V*H*W
+    pixel-aligned Gaussians, view-major."""
+    views = cameras.num_views
+    pieces = gaussians.split(views)
+    errors = []
+    for v in range(views):
+        others = [pieces[u] for u in range(views) if u != v]
+        merged = Gaussians(**{name: torch.cat([getattr(p, name) for p in others])
+                              for name in ("means", "quats", "scales", "opacities", "sh")})
+        out = model.render(merged, cameras.select([v]))
+        over_photo = out["rgb"] + (1.0 - out["alpha"][:, None]) * images[v:v + 1]
+        errors.append(F.mse_loss(over_photo, images[v:v + 1]))
+    return torch.stack(errors).mean()
+
+
+def _psnr(mse: float) -> float:
+    return -10.0 * math.log10(max(mse, 1e-12))
+
+
+def _learning_rate(config: RDOConfig, step: int, elapsed: float) -> float:
+    """The cosine schedule at ``step`` / ``elapsed`` seconds (the further along of the two decides)."""
+    done = 0.0
+    if config.steps:
+        done = step / config.steps
+    if config.time_budget:
+        done = max(done, elapsed / config.time_budget)
+    done = min(done, 1.0)
+    floor = config.final_lr_fraction
+    return config.learning_rate * (floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * done)))
+
+
+def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, start: CompressedLatents,
+                     config: RDOConfig, progress: bool = False) -> RDOResult:
+    """Optimise the latents of a scene from the amortised coding ``start`` (see the module docstring).
+
+    Args:
+        model: a :class:`~codecsplat_warp.model.CodecSplat` with its codec (its weights are not changed).
+        images: [V,3,H,W] context images in [0,1]; cameras: the V context cameras (float32), on the model's device.
+        lam: the rate-distortion lambda in [16, 1024].
+        start: the amortised encoder's coding, with ``feature`` (``compress(..., reconstruct=True)``).
+        config: the settings; ``config.steps`` of 0 returns ``start`` as it is.
+        progress: show a progress bar (tqdm, on a terminal's stderr).
+    Returns:
+        :class:`RDOResult`.
+    """
+    lam = check_lambda(lam)
+    began = time.perf_counter()
+    if not config.optimises:
+        return RDOResult(start, 0, 0, 0.0, "steps")
+    if start.feature is None:
+        raise InputError("optimise_latents needs the amortised coding's feature: compress with reconstruct=True")
+    codec = model.codec
+    height, width = cameras.height // FEATURE_STRIDE, cameras.width // FEATURE_STRIDE
+    was_training = model.training
+    frozen = [p.requires_grad for p in model.parameters()]
+    model.requires_grad_(False)
+    try:
+        with torch.no_grad():
+            s_start = model.depth_head(start.feature.float(), cameras)[0] if config.depth_weight > 0 else None
+        target = _Target(images, cameras, lam, context_neighbours(cameras, model.config.neighbours), s_start)
+        best = _measure(model, start, target, config, 0, time.perf_counter() - began)
+        best_compressed, checks = start, [best]
+        latents = [z.detach().clone().requires_grad_(True) for z in start.latents]
+        optimiser = torch.optim.Adam(latents, lr=config.learning_rate)
+        generator = torch.Generator(device=images.device).manual_seed(config.seed)
+        step, stopped = 0, "steps"
+        bar = _progress_bar(config, progress)
+        try:
+            while True:
+                elapsed = time.perf_counter() - began
+                if config.steps is not None and step >= config.steps:
+                    break
+                if config.time_budget is not None and elapsed >= config.time_budget:
+                    stopped = "time"
+                    break
+                for group in optimiser.param_groups:
+                    group["lr"] = _learning_rate(config, step, elapsed)
+                model.train()
+                optimiser.zero_grad(set_to_none=True)
+                loss, _ = rdo_loss(model, latents, target, config, generator)
+                loss.backward()
+                with torch.no_grad():
+                    for z in latents:
+                        torch.nan_to_num_(z.grad, nan=0.0, posinf=0.0, neginf=0.0)
+                optimiser.step()
+                with torch.no_grad():
+                    for z in latents:
+                        z.clamp_(-LATENT_LIMIT, LATENT_LIMIT)
+                step += 1
+                _advance(bar, config, step, began)
+                if config.check_every and step % config.check_every == 0 and step != config.steps:
+                    check, compressed = _check(model, latents, target, config, step, began)
+                    if check is None:
+                        stopped = "non-finite"
+                        break
+                    checks.append(check)
+                    if check.loss < best.loss:
+                        best, best_compressed = check, compressed
+                    _describe(bar, check, best)
+        except KeyboardInterrupt:
+            stopped = "interrupted"
+        finally:
+            if bar is not None:
+                bar.close()
+        if stopped != "non-finite" and (not checks or checks[-1].step != step) and step > 0:
+            check, compressed = _check(model, latents, target, config, step, began)
+            if check is None:
+                stopped = "non-finite"
+            else:
+                checks.append(check)
+                if check.loss < best.loss:
+                    best, best_compressed = check, compressed
+        return RDOResult(best_compressed, best.step, step, time.perf_counter() - began, stopped, checks)
+    finally:
+        for p, flag in zip(model.parameters(), frozen):
+            p.requires_grad_(flag)
+        model.train(was_training)
+
+
+def _check(model, latents: list[torch.Tensor], target: _Target, config: RDOConfig, step: int,
+           began: float) -> tuple[RDOCheck | None, CompressedLatents | None]:
+    """Code the latents for real and measure them; (None, None) when they, or their loss, are not finite."""
+    if not all(bool(torch.isfinite(z).all()) for z in latents):
+        return None, None
+    model.eval()
+    compressed = model.codec.compress_latents(latents, target.lam, target.cameras.height // FEATURE_STRIDE,
+                                              target.cameras.width // FEATURE_STRIDE, reconstruct=True)
+    check = _measure(model, compressed, target, config, step, time.perf_counter() - began)
+    return (check, compressed) if math.isfinite(check.loss) else (None, None)
+
+
+@torch.no_grad()
+def _measure(model, compressed: CompressedLatents, target: _Target, config: RDOConfig, step: int,
+             seconds: float) -> RDOCheck:
+    """The loss of a real coding (its decoder feature, its discrete-model bits), in eval mode."""
+    model.eval()
+    measured = replace(config, precision="float32")
+    loss, parts = rdo_loss(model, compressed.latents, target, measured, compressed=compressed)
+    return RDOCheck(step, seconds, float(loss), _psnr(float(parts["mse"])), float(compressed.bits.sum()))
+
+
+def _progress_bar(config: RDOConfig, progress: bool):
+    """A tqdm bar over the steps (or the budget's seconds when the steps are unlimited), or None."""
+    if not progress:
+        return None
+    from tqdm.auto import tqdm
+
+    if config.steps is not None:
+        return tqdm(total=config.steps, desc="RDO", unit="step", leave=False, disable=None)
+    return tqdm(total=round(config.time_budget, 1), desc="RDO", unit="s", leave=False, disable=None,
+                bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s [{elapsed}<{remaining}{postfix}]")
+
+
+def _advance(bar, config: RDOConfig, step: int, began: float) -> None:
+    if bar is None:
+        return
+    if config.steps is not None:
+        bar.update(1)
+    else:
+        bar.n = min(round(time.perf_counter() - began, 1), bar.total)
+        bar.refresh()
+
+
+def _describe(bar, check: RDOCheck, best: RDOCheck) -> None:
+    if bar is not None:
+        bar.set_postfix_str(f"context {check.psnr:.2f} dB, {check.bits / 8192:.2f} KiB, best step {best.step}")

@@ -1,0 +1,154 @@
+"""Encoder-side rate-distortion optimisation (codecsplat_warp.model.rdo) on the tiny preset: the optimised bitstream
+decodes with the unchanged decoder, the measured loss never ends above the amortised one, the coded latents follow
+the optimised ones, seeds repeat a run, budgets and interruptions keep the best, bad arguments fail at once."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from conftest import tiny_coding_model
+
+from codecsplat_warp.codec import parse_bitstream
+from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
+from codecsplat_warp.errors import InputError
+from codecsplat_warp.model import rdo
+from codecsplat_warp.model.codecsplat import model_id
+
+LAM = 1024.0
+
+
+def _scene(seed: int = 3):
+    s = procedural_scene(seed, ProceduralConfig(width=48, height=32, num_views=2, texture_size=16))
+    return s.images.float() / 255.0, s.cameras.to(dtype=torch.float32)
+
+
+@pytest.fixture(scope="module")
+def optimised():
+    model = tiny_coding_model(0)
+    images, cameras = _scene()
+    amortised = model.encode_scene(images, cameras, LAM)
+    encoded = model.encode_scene(images, cameras, LAM, steps=12, seed=1)
+    return model, images, cameras, amortised, encoded
+
+
+def _context_mse(model, data: bytes, images, cameras) -> float:
+    with torch.no_grad():
+        rgb = model.render(model.decode(data), cameras)["rgb"]
+    return float((rgb - images).square().mean())
+
+
+def test_the_optimised_bitstream_decodes_with_the_unchanged_decoder_and_fits_the_context_better(optimised):
+    model, images, cameras, amortised, encoded = optimised
+    result = encoded.rdo
+    assert result.steps == 12 and result.stopped == "steps" and result.best_step > 0, result.to_dict()
+    assert parse_bitstream(encoded.data).header.model_id == model_id(model)
+    scene = model.decode_scene(encoded.data)
+    for coded, decoded in zip(encoded.latents, scene.latents):
+        assert torch.equal(coded, decoded.cpu())
+    assert encoded.data != amortised.data
+    # the measured loss of the kept latents is below the amortised latents' (step 0 of the checks)
+    checks = {c.step: c for c in result.checks}
+    assert checks[result.best_step].loss < checks[0].loss
+    assert _context_mse(model, encoded.data, images, cameras) < _context_mse(model, amortised.data, images, cameras)
+
+
+def test_the_amortised_check_measures_the_amortised_bitstream(optimised):
+    model, images, cameras, amortised, encoded = optimised
+    first = encoded.rdo.checks[0]
+    assert first.step == 0
+    assert first.bits == pytest.approx(float(amortised.estimated_bits.sum()), rel=1e-9)
+    expected = -10 * math.log10(_context_mse(model, amortised.data, images, cameras))
+    assert first.psnr == pytest.approx(expected, abs=1e-3)
+
+
+def test_a_seed_repeats_a_run_on_the_cpu(optimised):
+    model, images, cameras, _, encoded = optimised
+    again = model.encode_scene(images, cameras, LAM, steps=12, seed=1)
+    assert again.data == encoded.data
+
+
+def test_the_fast_preset_and_zero_steps_are_the_amortised_encoder(optimised):
+    model, images, cameras, amortised, _ = optimised
+    assert model.encode(images, cameras, LAM, preset="fast") == amortised.data
+    assert model.encode(images, cameras, LAM, preset="slow", steps=0) == amortised.data
+    assert amortised.rdo is None
+
+
+def test_a_time_budget_alone_ends_the_run():
+    model = tiny_coding_model(1)
+    images, cameras = _scene(5)
+    encoded = model.encode_scene(images, cameras, 256.0, time_budget=0.5)
+    assert encoded.rdo.stopped == "time" and encoded.rdo.steps >= 1
+    model.decode(encoded.data)
+
+
+def test_a_keyboard_interrupt_keeps_the_best_latents_so_far(monkeypatch):
+    model = tiny_coding_model(2)
+    images, cameras = _scene(7)
+    calls = {"n": 0}
+    real_loss = rdo.rdo_loss
+
+    def interrupting(*args, **kwargs):
+        if kwargs.get("compressed") is None:
+            calls["n"] += 1
+            if calls["n"] == 4:
+                raise KeyboardInterrupt
+        return real_loss(*args, **kwargs)
+
+    monkeypatch.setattr(rdo, "rdo_loss", interrupting)
+    encoded = model.encode_scene(images, cameras, LAM, steps=50)
+    assert encoded.rdo.stopped == "interrupted" and encoded.rdo.steps == 3
+    assert [c.step for c in encoded.rdo.checks] == [0, 3]
+    model.decode(encoded.data)
+
+
+def test_non_finite_gradients_leave_the_latents_finite_and_the_bitstream_decodable(monkeypatch):
+    model = tiny_coding_model(3)
+    images, cameras = _scene(9)
+    real_loss = rdo.rdo_loss
+
+    def poisoned(model_, latents, *args, **kwargs):
+        loss, parts = real_loss(model_, latents, *args, **kwargs)
+        if kwargs.get("compressed") is None:
+            loss = loss + (latents[0] * float("nan")).sum()
+        return loss, parts
+
+    monkeypatch.setattr(rdo, "rdo_loss", poisoned)
+    encoded = model.encode_scene(images, cameras, LAM, steps=4)
+    assert encoded.rdo.steps == 4 and all(math.isfinite(c.loss) for c in encoded.rdo.checks)
+    model.decode(encoded.data)
+
+
+def test_runaway_latents_are_clamped_inside_the_coders_range():
+    model = tiny_coding_model(4)
+    images, cameras = _scene(11)
+    start = model.codec.compress(model(images, cameras)["F_c"].detach(), LAM, reconstruct=True)
+    start.latents = [torch.full_like(z, 1e12) for z in start.latents]  # past the escape range: uncodable as they are
+    config = rdo.RDOConfig(steps=1, learning_rate=1e-3, check_every=0)
+    with torch.enable_grad():
+        result = rdo.optimise_latents(model, images, cameras, LAM, start, config)
+    # the step-1 check coded the clamped latents (coding the start's raises InputError)
+    assert [c.step for c in result.checks] == [0, 1] and math.isfinite(result.checks[1].loss)
+    with pytest.raises(InputError, match="huge"):
+        model.codec.compress_latents(start.latents, LAM, 16, 24)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"steps": -1}, "steps"), ({"steps": 2.5}, "steps"), ({"time_budget": 0.0}, "budget"),
+    ({"time_budget": -3.0}, "budget"), ({"time_budget": float("nan")}, "budget"), ({"preset": "fastest"}, "preset"),
+])
+def test_bad_arguments_get_a_typed_error_at_once(kwargs, match):
+    model = tiny_coding_model(0)
+    images, cameras = _scene()
+    with pytest.raises(InputError, match=match):
+        model.encode_scene(images, cameras, LAM, **kwargs)
+
+
+def test_preset_configs():
+    assert not rdo.rdo_config("fast").optimises
+    assert rdo.rdo_config("medium").steps == rdo.PRESET_STEPS["medium"]
+    assert rdo.rdo_config("fast", time_budget=3.0).steps is None
+    assert rdo.rdo_config("slow", time_budget=3.0).steps == rdo.PRESET_STEPS["slow"]
+    assert rdo.rdo_config("slow", steps=7).steps == 7
