@@ -35,6 +35,7 @@ BENCHMARKS = {
     "geometry": "codecsplat_warp.bench.geometry",
     "leaveout": "codecsplat_warp.bench.leaveout",
     "raster": "codecsplat_warp.bench.raster",
+    "rdo": "codecsplat_warp.bench.rdo",
     "report": "codecsplat_warp.bench.report",
 }
 """``codecsplat bench NAME`` -> module with ``run(args) -> dict`` (its options: :mod:`.bench.options`)."""

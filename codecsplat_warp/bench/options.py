@@ -143,6 +143,38 @@ def raster_arguments(parser: argparse.ArgumentParser) -> None:
                         help="CUDA: also list the N kernels with the most GPU time per call, ours and gsplat's (default 0: none)")
 
 
+RDO_PROFILE_PARTS = ("codec", "depth_head", "refine_post", "reprojection", "gs_head", "map_to_world", "rasterize",
+                     "convolutions", "loss", "optimiser", "other")
+"""The parts of ``bench rdo --profile``'s step: forward ranges of the model (``convolutions``: their backward
+alone), and the backward of each (``other``: the backward nodes of none of them)."""
+
+
+def rdo_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", default=os.environ.get("CODECSPLAT_DATA"),
+                        help="folder of scene folders (default $CODECSPLAT_DATA)")
+    parser.add_argument("--index", default=None, help="evaluation index JSON fixing each scene's context and target "
+                        "frames (as codecsplat eval --index; default: one nearest-view split per scene)")
+    parser.add_argument("--protocol", choices=("re10k", "dl3dv"), default="re10k",
+                        help="re10k: 2 views 256x256; dl3dv: 8 views 256x448 (default %(default)s)")
+    parser.add_argument("--scenes", default="", help="comma list of scene folder names to keep (default: all)")
+    parser.add_argument("--checkpoint", default=None, help="pretrained model file (default: the shipped model)")
+    parser.add_argument("--lambdas", default="16,128,1024", help="comma list of lambdas in [16, 1024] (default %(default)s)")
+    parser.add_argument("--steps", default="0,25,100,400",
+                        help="comma list of optimisation step counts, each its own run; 0 is the amortised encoder "
+                        "(default %(default)s)")
+    parser.add_argument("--set", default="", help="comma list of key=value overriding RDOConfig fields, e.g. "
+                        "learning_rate=0.02,cross_view_weight=1 (default: none, the tuned settings)")
+    parser.add_argument("--lpips-weights", default=None, help="folder with lpips_{vgg,alex}.safetensors (default "
+                        "$CODECSPLAT_LPIPS_WEIGHTS)")
+    parser.add_argument("--plot", default=None, metavar="PNG", help="write the error-against-time plot here "
+                        "(default: none)")
+    parser.add_argument("--pictures", default=None, metavar="DIR", help="write each sample's targets by every step "
+                        "count to DIR/<scene>-lambda<L>.png (default: none)")
+    parser.add_argument("--profile", action="store_true", help="profile one step instead (first sample, first lambda)")
+    parser.add_argument("--profile-steps", type=int, default=20,
+                        help="unprofiled steps whose median wall time --profile reports (default %(default)s)")
+
+
 def report_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out-dir", default="bench-report", help="folder for report.json, report.md, pareto.png (default %(default)s)")
     parser.add_argument("--quick", action="store_true", help="a small set on tiny sizes (under 2 min on a 2-core CPU)")
@@ -163,6 +195,7 @@ ARGUMENTS = {
     "geometry": geometry_arguments,
     "leaveout": leaveout_arguments,
     "raster": raster_arguments,
+    "rdo": rdo_arguments,
     "report": report_arguments,
 }
 """``codecsplat bench NAME`` -> the function that adds NAME's options to its parser."""

@@ -28,6 +28,7 @@ from typing import Iterator
 import numpy as np
 import torch
 from torch import nn
+from torch.profiler import record_function
 
 from ..cameras import Cameras
 from ..checks import check_finite, check_tensor, common_device
@@ -145,24 +146,27 @@ class CodecSplat(nn.Module):
         """§3.5 from the reconstructed feature F^_c [V,C_F,H/2,W/2]: depth head (S, D^ [V,H,W]), post-codec
         refiner with A(F^_c, D^) (Eq. 5), GS head, Map 2D->3D. ``neighbours`` [V,M] default to the cameras'
         nearest views (as MVEnc picks them). Returns (S, D^, Gaussians)."""
-        s, depth = self.depth_head(feature, cameras)
+        with record_function("depth_head"):
+            s, depth = self.depth_head(feature, cameras)
         if neighbours is None:
             neighbours = context_neighbours(cameras, self.config.neighbours)
-        refined = self.refine_post(feature, depth, cameras, neighbours)
+        with record_function("refine_post"):
+            refined = self.refine_post(feature, depth, cameras, neighbours)
         return s, depth, self.decode_gaussians(refined, depth, cameras)
 
     def decode_gaussians(self, feature: torch.Tensor, depth: torch.Tensor, cameras: Cameras) -> Gaussians:
         """Eqs. 11-12: GSHead(feature [V,C_F,H/2,W/2], depth [V,H,W]) then Map 2D->3D -> world Gaussians."""
-        pixels = self.gs_head(feature, depth, cameras)
-        with torch.autocast(feature.device.type, enabled=False):  # world positions and SH rotations in float32
-            return map_to_world(pixels, depth.float(), cameras)
+        with record_function("gs_head"):
+            pixels = self.gs_head(feature, depth, cameras)
+        with record_function("map_to_world"), torch.autocast(feature.device.type, enabled=False):
+            return map_to_world(pixels, depth.float(), cameras)  # world positions and SH rotations in float32
 
     # ----------------------------------------------------------------------------------------------
     # Bitstreams
     @torch.no_grad()
     def encode_scene(self, images: torch.Tensor, cameras: Cameras, lam: float, timer: Timer = no_timer,
                      preset: str = "fast", steps: int | None = None, time_budget: float | None = None,
-                     seed: int = 0, progress: bool = False) -> EncodedScene:
+                     seed: int = 0, progress: bool = False, rdo_settings: dict | None = None) -> EncodedScene:
         """Encoder: context views -> scene bitstream (Eq. 8) and the coded symbols.
 
         MVEnc, FeatHead and R_pre give F_c (bf16 autocast on CUDA), the codec quantises and range codes its
@@ -181,13 +185,15 @@ class CodecSplat(nn.Module):
             time_budget: wall seconds the optimisation may take at most (None: no limit).
             seed: seed of the optimisation's quantisation noise (the same seed repeats a run on the CPU).
             progress: show the optimisation's progress bar (on a terminal).
+            rdo_settings: other fields of :class:`.rdo.RDOConfig` (learning rate, loss weights, precision, ...)
+                for experiments; None keeps the tuned defaults.
         Raises:
             InputError / DeviceMismatchError: as :meth:`forward`; InputError if the model has no codec, for an
                 unknown preset, steps < 0 or a time budget <= 0.
         """
         self._require_codec()
         lam = float(np.float32(check_lambda(lam)))
-        config = rdo_config(preset, steps, time_budget, seed)
+        config = rdo_config(preset, steps, time_budget, seed, **(rdo_settings or {}))
         images = self._check_inputs(images, cameras)
         with torch.autocast(images.device.type, dtype=torch.bfloat16, enabled=images.device.type == "cuda"):
             enc = self.mvenc(images, cameras)
@@ -269,7 +275,7 @@ class CodecSplat(nn.Module):
         common_device(means=gaussians.means, K=cameras.K)
         cams = cameras.to(dtype=torch.float32)
         near, far = render_depth_range(cams)
-        with torch.autocast(gaussians.means.device.type, enabled=False):
+        with record_function("rasterize"), torch.autocast(gaussians.means.device.type, enabled=False):
             rgb, depth, alpha, meta = rasterize(
                 gaussians.means.float(), gaussians.quats.float(), gaussians.scales.float(),
                 gaussians.opacities.float(), gaussians.sh.float(), cams.w2c, cams.K, cams.width, cams.height,

@@ -40,6 +40,7 @@ from dataclasses import dataclass, field, replace
 
 import torch
 from torch.nn import functional as F
+from torch.profiler import record_function
 
 from ..cameras import Cameras
 from ..codec.latent import LAMBDA_MAX, CompressedLatents, check_lambda
@@ -177,7 +178,7 @@ class RDOResult:
 
 
 @dataclass
-class _Target:
+class RDOTarget:
     """The fixed inputs of a run: context ``images`` [V,3,H,W], ``cameras``, ``lam``, the decoder's
     ``neighbours`` [V,M] and the amortised decoder's normalised inverse depth ``s_start`` [V,H,W]."""
 
@@ -188,7 +189,15 @@ class _Target:
     s_start: torch.Tensor | None
 
 
-def rdo_loss(model, latents: list[torch.Tensor], target: _Target, config: RDOConfig,
+@torch.no_grad()
+def rdo_target(model, images: torch.Tensor, cameras: Cameras, lam: float, start: CompressedLatents,
+               config: RDOConfig) -> RDOTarget:
+    """The fixed inputs of a run from the context views and the amortised coding ``start`` (with its feature)."""
+    s_start = model.depth_head(start.feature.float(), cameras)[0] if config.depth_weight > 0 else None
+    return RDOTarget(images, cameras, lam, context_neighbours(cameras, model.config.neighbours), s_start)
+
+
+def rdo_loss(model, latents: list[torch.Tensor], target: RDOTarget, config: RDOConfig,
              generator: torch.Generator | None = None, compressed: CompressedLatents | None = None
              ) -> tuple[torch.Tensor, dict]:
     """The loss of the module docstring and its parts (``mse``, ``cross``, ``depth``, ``bpp`` as 0-dim tensors).
@@ -202,14 +211,16 @@ def rdo_loss(model, latents: list[torch.Tensor], target: _Target, config: RDOCon
                               enabled=config.precision == "bfloat16" and images.device.type == "cuda")
     with autocast:
         if compressed is None:
-            coded = model.codec.forward_latents(latents, target.lam, height // FEATURE_STRIDE, width // FEATURE_STRIDE,
-                                                generator)
+            with record_function("codec"):
+                coded = model.codec.forward_latents(latents, target.lam, height // FEATURE_STRIDE,
+                                                    width // FEATURE_STRIDE, generator)
             feature, bits = coded.feature, coded.bits.sum()
         else:
             feature, bits = compressed.feature, compressed.bits.sum().to(images.device, torch.float32)
         s, _, gaussians = model.decode_feature(feature, cameras, target.neighbours)
     rgb = model.render(gaussians, cameras)["rgb"]
-    parts = {"mse": F.mse_loss(rgb, images), "bpp": bits.float() / images[:, 0].numel()}
+    with record_function("loss"):
+        parts = {"mse": F.mse_loss(rgb, images), "bpp": bits.float() / images[:, 0].numel()}
     distortion = parts["mse"]
     if config.cross_view_weight > 0:
         parts["cross"] = cross_view_error(model, gaussians, cameras, images)
@@ -280,9 +291,7 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
     frozen = [p.requires_grad for p in model.parameters()]
     model.requires_grad_(False)
     try:
-        with torch.no_grad():
-            s_start = model.depth_head(start.feature.float(), cameras)[0] if config.depth_weight > 0 else None
-        target = _Target(images, cameras, lam, context_neighbours(cameras, model.config.neighbours), s_start)
+        target = rdo_target(model, images, cameras, lam, start, config)
         best = _measure(model, start, target, config, 0, time.perf_counter() - began)
         best_compressed, checks = start, [best]
         latents = [z.detach().clone().requires_grad_(True) for z in start.latents]
@@ -300,17 +309,7 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
                     break
                 for group in optimiser.param_groups:
                     group["lr"] = _learning_rate(config, step, elapsed)
-                model.train()
-                optimiser.zero_grad(set_to_none=True)
-                loss, _ = rdo_loss(model, latents, target, config, generator)
-                loss.backward()
-                with torch.no_grad():
-                    for z in latents:
-                        torch.nan_to_num_(z.grad, nan=0.0, posinf=0.0, neginf=0.0)
-                optimiser.step()
-                with torch.no_grad():
-                    for z in latents:
-                        z.clamp_(-LATENT_LIMIT, LATENT_LIMIT)
+                rdo_step(model, latents, optimiser, target, config, generator)
                 step += 1
                 _advance(bar, config, step, began)
                 if config.check_every and step % config.check_every == 0 and step != config.steps:
@@ -342,7 +341,23 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
         model.train(was_training)
 
 
-def _check(model, latents: list[torch.Tensor], target: _Target, config: RDOConfig, step: int,
+def rdo_step(model, latents: list[torch.Tensor], optimiser: torch.optim.Optimizer, target: RDOTarget,
+             config: RDOConfig, generator: torch.Generator | None) -> None:
+    """One optimisation step of ``latents`` in place (training quantiser; no host synchronisation of its own):
+    loss, backward, non-finite gradients zeroed, Adam, clamp to +-:data:`LATENT_LIMIT`."""
+    model.train()
+    optimiser.zero_grad(set_to_none=True)
+    loss, _ = rdo_loss(model, latents, target, config, generator)
+    loss.backward()
+    with record_function("optimiser"), torch.no_grad():
+        for z in latents:
+            torch.nan_to_num_(z.grad, nan=0.0, posinf=0.0, neginf=0.0)
+        optimiser.step()
+        for z in latents:
+            z.clamp_(-LATENT_LIMIT, LATENT_LIMIT)
+
+
+def _check(model, latents: list[torch.Tensor], target: RDOTarget, config: RDOConfig, step: int,
            began: float) -> tuple[RDOCheck | None, CompressedLatents | None]:
     """Code the latents for real and measure them; (None, None) when they, or their loss, are not finite."""
     if not all(bool(torch.isfinite(z).all()) for z in latents):
@@ -355,7 +370,7 @@ def _check(model, latents: list[torch.Tensor], target: _Target, config: RDOConfi
 
 
 @torch.no_grad()
-def _measure(model, compressed: CompressedLatents, target: _Target, config: RDOConfig, step: int,
+def _measure(model, compressed: CompressedLatents, target: RDOTarget, config: RDOConfig, step: int,
              seconds: float) -> RDOCheck:
     """The loss of a real coding (its decoder feature, its discrete-model bits), in eval mode."""
     model.eval()

@@ -1,0 +1,298 @@
+"""``codecsplat bench rdo``: encoder-side rate-distortion optimisation, error against encode time, and its step profile.
+
+**Curve** (default): for every sample of ``--data`` (scene folders; ``--index`` fixes the samples, as for
+``codecsplat eval``), every lambda of ``--lambdas`` and every step count of ``--steps`` (each an independent run
+with its own learning-rate schedule; 0 is the amortised encoder), the scene is encoded with
+``model.encode_scene(..., steps=N)``, decoded with the unchanged ``decode_scene`` and rendered into the target
+views. Per point: encode seconds (the whole encode: backbone, optimisation, coding; CUDA synchronised), bitstream
+bytes, target PSNR, SSIM and LPIPS-VGG/Alex (when weights are found), and the context views' PSNR of the decoded
+scene. Copy-the-nearest-view and the codec-free model are scored once per sample as references. The table gives
+the means over samples per (lambda, steps); ``rdo_curve.png`` plots target PSNR, LPIPS-VGG and KiB against mean
+encode seconds, a line per lambda. ``--set key=value,...`` overrides fields of
+:class:`~codecsplat_warp.model.rdo.RDOConfig` (learning rate, loss weights, precision) for experiments, and
+``--pictures DIR`` writes one picture per sample and lambda: the targets' truth, copy-nearest, codec-free and
+every step count.
+
+**Profile** (``--profile``): one step of the optimisation broken into the codec, the depth head, R_post (the
+reprojection apart), the GS head, the 2D->3D map (unprojection), the rasterizer, the loss and the optimiser, each
+forward and backward, from ``torch.profiler`` on the first sample at the first lambda: CPU time per part on the
+CPU, GPU kernel time per part on CUDA (beside the step's wall time, whose excess over the kernels is launch,
+synchronisation and Python time). The median wall time of ``--profile-steps`` unprofiled steps comes first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import pathlib
+import statistics
+import sys
+import time
+
+import torch
+
+from ..errors import InputError
+from ..eval.protocols import (PROTOCOLS, Sample, eager_plan, find_scenes, folder_index_plan, nearest_context_images,
+                              scene_samples, select_scenes)
+from ..eval.report import plot_comparison, pyplot, save_figure
+from ..export.video import to_uint8_frames
+from ..measure import format_table, machine_name, synchronize
+from ..metrics.image import ImageMetrics
+from ..model import pretrained
+from ..model.rdo import RDOConfig, optimise_latents, rdo_config, rdo_step, rdo_target
+from .options import RDO_PROFILE_PARTS
+
+METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
+
+
+def run(args: argparse.Namespace) -> dict:
+    device = torch.device(args.device)
+    settings = parse_settings(args.set)
+    rdo_config("fast", None, None, 0, **settings)  # bad settings fail before any work
+    steps = _int_list(args.steps, "--steps")
+    lambdas = [float(x) for x in args.lambdas.split(",") if x.strip()]
+    if not lambdas or not steps or any(n < 0 for n in steps):
+        raise InputError("--lambdas and --steps need at least one value each, steps >= 0")
+    model = pretrained.load_pretrained(args.checkpoint, device)
+    samples = _samples(args, model)
+    result = {"device": str(device), "machine": machine_name(device), "protocol": args.protocol,
+              "settings": settings, "lambdas": lambdas, "steps": steps}
+    if args.profile:
+        result["profile"] = profile_step(model, samples[0], lambdas[0], settings, args.profile_steps, device)
+        print(format_profile(result["profile"]))
+        return result
+    metrics = ImageMetrics(args.lpips_weights, device)
+    rows = []
+    for sample in samples:
+        rows += bench_sample(model, sample.to(device), lambdas, steps, settings, metrics, device, args.pictures)
+    result.update(rows=rows, summary=summarize(rows), lpips=metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1")
+    print(format_summary(result["summary"], result["machine"]))
+    if args.plot:
+        plot_curve(result["summary"], pathlib.Path(args.plot))
+    return result
+
+
+def parse_settings(text: str) -> dict:
+    """``key=value,...`` -> {RDOConfig field: value}, each value typed like the field's default."""
+    defaults = RDOConfig()
+    settings = {}
+    for item in (part.strip() for part in text.split(",")):
+        if not item:
+            continue
+        key, sep, value = item.partition("=")
+        if not sep or not hasattr(defaults, key) or key in ("steps", "time_budget", "seed"):
+            raise InputError(f"--set takes key=value pairs of RDOConfig fields (not steps, time_budget or seed), "
+                             f"got {item!r}")
+        kind = type(getattr(defaults, key))
+        try:
+            settings[key] = kind(value)
+        except ValueError:
+            raise InputError(f"--set {key}: {value!r} is not a {kind.__name__}") from None
+    return settings
+
+
+def _int_list(text: str, what: str) -> list[int]:
+    try:
+        return [int(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        raise InputError(f"{what} must be a comma list of integers, got {text!r}") from None
+
+
+def _samples(args: argparse.Namespace, model) -> list[Sample]:
+    """The samples of ``--data`` (``--index`` entries, or one nearest-view split per scene), on the CPU."""
+    if not args.data:
+        raise InputError("bench rdo needs --data (a folder of scene folders; default $CODECSPLAT_DATA)")
+    protocol = PROTOCOLS[args.protocol]
+    names = tuple(name.strip() for name in args.scenes.split(",") if name.strip())
+    if args.index:
+        plan = folder_index_plan(find_scenes(args.data), args.index, protocol, names)
+    else:
+        samples = []
+        for path in select_scenes(find_scenes(args.data), tuple(sorted(names))):
+            samples += scene_samples(path, protocol, protocol.context_views or model.config.num_views, 1)
+        plan = eager_plan(samples, [])
+    samples = list(plan.load(0))
+    if not samples:
+        raise InputError(f"no sample under {args.data} for the {args.protocol} protocol")
+    return samples
+
+
+def bench_sample(model, sample: Sample, lambdas: list[float], steps: list[int], settings: dict,
+                 metrics: ImageMetrics, device: torch.device, pictures: str | None) -> list[dict]:
+    """Rows of one sample: the references (copy-nearest, codec-free) and one per (lambda, steps)."""
+    def score(rgb: torch.Tensor) -> dict:
+        return {k: statistics.fmean(v) for k, v in metrics(rgb, sample.target_images).items()}
+
+    base = {"scene": sample.scene, "context": sample.context, "target": sample.target}
+    copy = nearest_context_images(sample.context_images, sample.context_cameras, sample.target_cameras)
+    with torch.no_grad():
+        free = model.render(model(sample.context_images, sample.context_cameras)["gaussians"],
+                            sample.target_cameras)["rgb"]
+    rows = [{**base, "method": "copy nearest", **score(copy)}, {**base, "method": "codec-free", **score(free)}]
+    model.encode_scene(sample.context_images, sample.context_cameras, lambdas[0], steps=min(steps[-1], 2),
+                       rdo_settings=settings)  # warm-up: kernels, allocator
+    for lam in lambdas:
+        renders, titles = [to_uint8_frames(sample.target_images), to_uint8_frames(copy), to_uint8_frames(free)], \
+            ["truth", "copy nearest", "codec-free"]
+        for count in steps:
+            synchronize(device)
+            start = time.perf_counter()
+            encoded = model.encode_scene(sample.context_images, sample.context_cameras, lam, steps=count,
+                                         rdo_settings=settings)
+            synchronize(device)
+            seconds = time.perf_counter() - start
+            with torch.no_grad():
+                scene = model.decode_scene(encoded.data)
+                rgb = model.render(scene.gaussians, sample.target_cameras)["rgb"]
+                own = model.render(scene.gaussians, sample.context_cameras)["rgb"]
+            context_psnr = -10 * math.log10(max(float((own.clamp(0, 1) - sample.context_images).square().mean()),
+                                                1e-12))
+            row = {**base, "method": "codecsplat", "lambda": lam, "steps": count, "seconds": seconds,
+                   "bytes": len(encoded.data), "context_psnr": context_psnr, **score(rgb)}
+            if encoded.rdo is not None:
+                row["rdo"] = encoded.rdo.to_dict()
+            rows.append(row)
+            print(f"{sample.scene} λ={lam:g} steps={count}: {seconds:.2f} s, {len(encoded.data)} B, "
+                  f"target {row['psnr']:.2f} dB, context {context_psnr:.2f} dB", file=sys.stderr, flush=True)
+            renders.append(to_uint8_frames(rgb))
+            titles.append(f"{count} steps, {len(encoded.data) / 1024:.1f} KiB\n{row['psnr']:.2f} dB, {seconds:.1f} s")
+        if pictures:
+            path = pathlib.Path(pictures) / f"{sample.scene}-lambda{lam:g}.png"
+            plot_comparison(renders, titles, path)
+    return rows
+
+
+def summarize(rows: list[dict]) -> list[dict]:
+    """Means over samples per (method, lambda, steps), the references' included."""
+    groups: dict[tuple, list[dict]] = {}
+    for row in rows:
+        groups.setdefault((row["method"], row.get("lambda"), row.get("steps")), []).append(row)
+    summary = []
+    for (method, lam, steps), group in groups.items():
+        entry = {"method": method, "lambda": lam, "steps": steps, "samples": len(group)}
+        for key in (*METRICS, "seconds", "bytes", "context_psnr"):
+            values = [r[key] for r in group if key in r]
+            if values:
+                entry[key] = statistics.fmean(values)
+        summary.append(entry)
+    return summary
+
+
+def format_summary(summary: list[dict], machine: str) -> str:
+    columns = [("method", "method", "s"), ("lambda", "λ", "g"), ("steps", "steps", "d"), ("samples", "samples", "d"),
+               ("seconds", "encode s", ".2f"), ("KiB", "KiB", ".2f"), ("psnr", "PSNR", ".2f"), ("ssim", "SSIM", ".3f"),
+               ("lpips_vgg", "LPIPS-VGG", ".3f"), ("context_psnr", "context PSNR", ".2f")]
+    rows = [{**entry, "KiB": entry["bytes"] / 1024 if "bytes" in entry else None} for entry in summary]
+    return f"bench rdo on {machine}: means over samples\n" + format_table(rows, columns)
+
+
+def plot_curve(summary: list[dict], path: pathlib.Path) -> None:
+    """Target PSNR, LPIPS-VGG and KiB against mean encode seconds, one line per lambda (points: step counts),
+    with the references as horizontal lines."""
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    coded = [e for e in summary if e["method"] == "codecsplat"]
+    for lam in sorted({e["lambda"] for e in coded}):
+        line = sorted((e for e in coded if e["lambda"] == lam), key=lambda e: e["seconds"])
+        seconds = [e["seconds"] for e in line]
+        for ax, key, scale in zip(axes, ("psnr", "lpips_vgg", "bytes"), (1, 1, 1 / 1024)):
+            if all(key in e for e in line):
+                ax.plot(seconds, [e[key] * scale for e in line], "o-", label=f"λ={lam:g}")
+                for e, x in zip(line, seconds):
+                    ax.annotate(str(e["steps"]), (x, e[key] * scale), fontsize=7, xytext=(2, 2),
+                                textcoords="offset points")
+    for entry, style in zip((e for e in summary if e["method"] != "codecsplat"), ("k:", "k--")):
+        for ax, key in zip(axes[:2], ("psnr", "lpips_vgg")):
+            if key in entry:
+                ax.axhline(entry[key], linestyle=style[1:], color="k", linewidth=1, label=entry["method"])
+    for ax, label in zip(axes, ("target PSNR (dB)", "target LPIPS-VGG", "bitstream KiB")):
+        ax.set_xlabel("encode seconds (mean per scene)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    save_figure(fig, path)
+
+
+# --------------------------------------------------------------------------------------------------
+# Profile of one step
+def profile_step(model, sample: Sample, lam: float, settings: dict, steps: int, device: torch.device) -> dict:
+    """Median wall ms of ``steps`` optimisation steps, then one profiled step broken into
+    :data:`RDO_PROFILE_PARTS` (ms of CPU time on the CPU, of GPU kernels on CUDA)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    sample = sample.to(device)
+    config = rdo_config("fast", 1, None, 0, **settings)
+    with torch.no_grad():
+        start = model.codec.compress(model(sample.context_images, sample.context_cameras)["F_c"], lam,
+                                     reconstruct=True)
+    target = rdo_target(model, sample.context_images, sample.context_cameras, lam, start, config)
+    latents = [z.detach().clone().requires_grad_(True) for z in start.latents]
+    optimiser = torch.optim.Adam(latents, lr=config.learning_rate)
+    frozen = [p.requires_grad for p in model.parameters()]
+    model.requires_grad_(False)
+    try:
+        def step() -> None:
+            rdo_step(model, latents, optimiser, target, config, None)
+
+        for _ in range(3):
+            step()
+        times = []
+        for _ in range(steps):
+            synchronize(device)
+            began = time.perf_counter()
+            step()
+            synchronize(device)
+            times.append(1e3 * (time.perf_counter() - began))
+        activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+        with profile(activities=activities) as prof:
+            step()
+            synchronize(device)
+    finally:
+        for p, flag in zip(model.parameters(), frozen):
+            p.requires_grad_(flag)
+        model.eval()
+    parts = _step_parts(prof.events(), device)
+    return {"scene": sample.scene, "views": sample.context_cameras.num_views,
+            "size": [sample.context_cameras.width, sample.context_cameras.height], "lambda": lam,
+            "step_ms": statistics.median(times), "step_ms_all": times,
+            "clock": "GPU kernel time" if device.type == "cuda" else "CPU time", "parts_ms": parts}
+
+
+_BACKWARD_PARTS = (("_RasterizeBackward", "rasterize"), ("_ReprojectAverage", "reprojection"),
+                   ("_Unproject", "map_to_world"), ("Convolution", "convolutions"))
+"""Backward autograd nodes by name fragment -> part (the rest is "other")."""
+
+
+def _step_parts(events, device: torch.device) -> dict[str, dict[str, float]]:
+    """{part: {"forward": ms, "backward": ms}} from a profiled step's events: forward by the record_function
+    ranges of the model (nested ranges are subtracted from their parents), backward by autograd node."""
+    def ms(event) -> float:
+        return (event.device_time_total if device.type == "cuda" else event.cpu_time_total) / 1e3
+
+    parts = {name: {"forward": 0.0, "backward": 0.0} for name in RDO_PROFILE_PARTS}
+    for event in events:
+        name = event.name
+        if name in ("codec", "depth_head", "refine_post", "gs_head", "map_to_world", "rasterize", "loss",
+                    "optimiser"):
+            parts[name]["forward"] += ms(event)
+        elif name in ("_ReprojectAverage",):
+            parts["reprojection"]["forward"] += ms(event)
+            parts["refine_post"]["forward"] -= ms(event)
+        elif name.startswith("autograd::engine::evaluate_function:"):
+            node = name.split(":")[-1].strip()
+            part = next((p for fragment, p in _BACKWARD_PARTS if fragment in node), "other")
+            parts[part]["backward"] += ms(event)
+    parts["optimiser"]["backward"] = 0.0
+    return {name: {k: round(v, 3) for k, v in value.items()} for name, value in parts.items()}
+
+
+def format_profile(profile: dict) -> str:
+    parts = profile["parts_ms"]
+    rows = [{"part": name, "forward": v["forward"], "backward": v["backward"], "total": v["forward"] + v["backward"]}
+            for name, v in parts.items()]
+    rows.append({"part": "sum of parts", "total": sum(r["total"] for r in rows)})
+    head = (f"RDO step on {profile['scene']} ({profile['views']} views, {profile['size'][0]}x{profile['size'][1]}, "
+            f"λ={profile['lambda']:g}): median wall {profile['step_ms']:.2f} ms; parts in {profile['clock']} (ms)")
+    columns = [("part", "part", "s"), ("forward", "forward", ".2f"), ("backward", "backward", ".2f"),
+               ("total", "total", ".2f")]
+    return head + "\n" + format_table(rows, columns)
