@@ -10,6 +10,7 @@ import torch
 
 from codecsplat_warp.baselines import ImageCodec
 from codecsplat_warp.baselines.image_codec import FORMATS
+from codecsplat_warp.choices import BASELINE_NAMES, IMAGE_CODEC_QUALITIES
 from codecsplat_warp.data import ProceduralConfig, procedural_scene
 from codecsplat_warp.errors import BitstreamError, InputError
 
@@ -80,3 +81,8 @@ def test_bad_images_are_input_errors(photographs):
         with pytest.raises(InputError, match="uint8"):
             codec.encode(images)
 
+
+def test_every_image_baseline_has_a_format_and_default_qualities_it_accepts():
+    assert set(IMAGE_CODEC_QUALITIES) == set(FORMATS) <= set(BASELINE_NAMES)
+    for name, qualities in IMAGE_CODEC_QUALITIES.items():
+        assert list(qualities) == sorted(set(qualities)) and [ImageCodec(name, q).quality for q in qualities]
