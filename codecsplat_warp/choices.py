@@ -22,8 +22,16 @@ DEMO_LAMBDAS = (16.0, 128.0, 1024.0)
 DEMO_TARGET_VIEWS = 2
 """Target views ``codecsplat demo`` renders and scores."""
 
-BASELINE_NAMES = ("ply", "png", "feature")
-"""Baselines ``--baselines`` may name: (a) PLY + Deflate, (b) PNG, (c) float16 feature + Deflate."""
+OUTPUT_BASELINES = ("ply", "png", "feature")
+"""Baselines that compress the codec-free model's output: (a) PLY + Deflate, (b) PNG, (c) float16 feature + Deflate."""
+
+IMAGE_CODEC_QUALITIES = {"webp": (0, 10, 35, 80), "jpeg": (1, 5, 20, 50)}
+"""Baselines that code the context photographs as image files (then the codec-free model runs on the decoded ones),
+with the qualities ``codecsplat eval`` runs by default (``--webp-qualities``, ``--jpeg-qualities``): on the ten
+held-out scenes about 2-15 KiB per scene for 2 views at 256x256 and 12-104 KiB for 8 views at 256x448."""
+
+BASELINE_NAMES = OUTPUT_BASELINES + tuple(IMAGE_CODEC_QUALITIES)
+"""Baselines ``--baselines`` may name."""
 
 PAPER_LAMBDAS = (16.0, 32.0, 64.0, 128.0, 256.0, 512.0, 1024.0)
 """The paper's rate trade-offs (``codecsplat eval``'s default)."""

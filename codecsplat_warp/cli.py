@@ -76,7 +76,8 @@ def _number_list(kind, text: str, what: str) -> list:
 
 def build_parser() -> argparse.ArgumentParser:
     from .bench.options import ARGUMENTS as BENCHMARK_ARGUMENTS
-    from .choices import BASELINE_NAMES, DEMO_LAMBDAS, DEMO_SCENE, DEMO_SEED, DEMO_TARGET_VIEWS, PROCEDURAL
+    from .choices import BASELINE_NAMES, DEMO_LAMBDAS, DEMO_SCENE, DEMO_SEED, DEMO_TARGET_VIEWS, IMAGE_CODEC_QUALITIES
+    from .choices import PROCEDURAL
     from .choices import FRAME_FORMATS as FORMATS
     from .choices import PAPER_LAMBDAS, PROTOCOL_NAMES as PROTOCOLS
 
@@ -143,6 +144,19 @@ def build_parser() -> argparse.ArgumentParser:
                           "and target frames, null to skip); fixes the samples, --samples-per-scene is then unused")
     evaluate.add_argument("--targets", type=int, help="target views per sample (default: the protocol's, 3)")
     evaluate.add_argument("--lpips-weights", help="folder with lpips_{vgg,alex}.safetensors (default $CODECSPLAT_LPIPS_WEIGHTS)")
+    evaluate.add_argument("--webp-qualities", default=",".join(map(str, IMAGE_CODEC_QUALITIES["webp"])),
+                          help="comma list of WebP qualities (0-100) of the WebP + codec-free baseline: the context "
+                          "photographs as WebP files, the codec-free model on the decoded ones (default %(default)s)")
+    evaluate.add_argument("--jpeg-qualities", default=",".join(map(str, IMAGE_CODEC_QUALITIES["jpeg"])),
+                          help="comma list of JPEG qualities (1-100) of the JPEG + codec-free baseline (default "
+                          "%(default)s)")
+    evaluate.add_argument("--rdo-presets", help="comma list of encoder RDO presets with steps (medium, slow): each "
+                          "adds CodecSplat rows at every lambda, encoded with that rate-distortion optimisation "
+                          "(default: none)")
+    evaluate.add_argument("--rdo-steps", help="comma list of RDO step counts: each adds CodecSplat rows at every "
+                          "lambda, optimised for that many steps (default: none)")
+    evaluate.add_argument("--rdo-seed", type=int, default=0, help="seed of the RDO rows' quantisation noise "
+                          "(default %(default)s)")
     evaluate.add_argument("--png-sh-clusters", type=int, default=8192, help="K_SH, colour clusters of the PNG baseline (default %(default)s)")
     evaluate.add_argument("--kmeans-iterations", type=int, default=10, help="Lloyd steps of the PNG baseline's k-means (default %(default)s)")
     evaluate.add_argument("--size", help="WIDTHxHEIGHT instead of the protocol's image size (its depth range stays)")
@@ -474,7 +488,11 @@ def _cmd_eval(args) -> int:
                         kmeans_iterations=args.kmeans_iterations, progress=not args.json,
                         scenes=tuple(name.strip() for name in args.scenes.split(",") if name.strip()),
                         index=args.index, size=_size(args.size) if args.size else None, resume=not args.restart,
-                        renders=args.renders, mvs_depth=args.mvs_depth)
+                        renders=args.renders, mvs_depth=args.mvs_depth,
+                        webp_qualities=tuple(_number_list(int, args.webp_qualities, "--webp-qualities")),
+                        jpeg_qualities=tuple(_number_list(int, args.jpeg_qualities, "--jpeg-qualities")),
+                        rdo_presets=tuple(name.strip() for name in (args.rdo_presets or "").split(",") if name.strip()),
+                        rdo_steps=tuple(_number_list(int, args.rdo_steps or "", "--rdo-steps")), rdo_seed=args.rdo_seed)
     result = evaluate(model, config, device)
     lines = [f"{len(result['scenes'])} scene(s), {args.protocol} protocol, {result['machine']}",
              "", "Table 1", result["tables"]["table1"], "", "Table 2 (seconds)", result["tables"]["table2"], "",

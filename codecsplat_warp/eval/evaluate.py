@@ -6,10 +6,17 @@ anchors; see :mod:`codecsplat_warp.eval.protocols`):
 
 * **CodecSplat** at each lambda: ``model.encode_scene`` -> bitstream -> ``model.decode_scene`` -> render the
   targets. Bytes are the whole bitstream (header, cameras, feature streams).
+* **CodecSplat RDO** (``rdo_presets``, ``rdo_steps``): the same at each lambda with the encoder's rate-distortion
+  optimisation (``model.encode_scene(..., preset=, steps=, seed=)``, :mod:`codecsplat_warp.model.rdo`), one row
+  set per setting, e.g. method ``CodecSplat RDO (slow)``.
 * **Codec-free reference and baselines**, all on the same model's codec-free output (``model(images,
   cameras)``: Gaussians, ``F_c``, ``D_enc``): the Gaussians as an uncompressed float32 3DGS PLY (the
   reconstruction upper bound), (a) PLY attributes quantised + Deflate, (b) gsplat-style PNG, (c) the
   feature ``F_c`` (and depth) in float16 + Deflate, each encoded, decoded and rendered.
+* **Image codecs + codec-free** (``webp``, ``jpeg``, at each quality): each context photograph (uint8 at the
+  protocol size) coded as a WebP or JPEG file (:mod:`codecsplat_warp.baselines.image_codec`), decoded, and the
+  codec-free model run on the decoded photographs with the true cameras. Bytes are the image files plus the
+  header and camera bytes of the sample's CodecSplat bitstream: the cameras both sides must send.
 * **Copy the nearest context view**: the floor every table shows, at zero bytes: each target is predicted
   by the context image whose camera centre is nearest to the target's, unchanged.
 
@@ -25,10 +32,12 @@ scene or context views have no reference are left out of the depth means, and ``
 
 Timing (Table 2, seconds; CUDA work is synchronised before a clock is read): *GS generation* is the
 network work before compression: for CodecSplat the encoder's backbone up to ``F_c`` (MVEnc, FeatHead,
-R_pre), for the baselines the whole codec-free forward pass that produces their Gaussians; *compress* is
-the rest of the encoder (CodecSplat: latent analysis, entropy coding, bitstream) or the baseline's
-encoder; *decompress* is bytes -> Gaussians on the device. A warm-up pass on the first sample (Warp
-kernel loading, allocator) is not timed.
+R_pre), for the baselines the whole codec-free forward pass that produces their Gaussians (for the image
+codecs it runs at the receiver, on the decoded photographs); *compress* is the rest of the encoder
+(CodecSplat: latent analysis, the RDO steps if any, entropy coding, bitstream) or the baseline's encoder;
+*decompress* is bytes -> Gaussians on the device (for the image codecs: bytes -> photographs). A warm-up pass
+on the first sample (Warp kernel loading, allocator, and one RDO step when RDO rows are asked for) is not
+timed.
 
 Outputs (``--out``): ``results.json`` (every sample and the summary; a rerun resumes from it), ``tables.md`` (Tables 1 and 2 in
 the paper's form, Table 3), ``rate_distortion.png`` (PSNR, SSIM, LPIPS-VGG and LPIPS-Alex against bytes) and
@@ -45,14 +54,14 @@ import statistics
 import sys
 import time
 from dataclasses import MISSING, asdict, dataclass, fields, replace
-from typing import Callable, Iterator
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from ..baselines import FeatureDeflate, PlyDeflate, PngCompression
-from ..choices import BASELINE_NAMES, PAPER_LAMBDAS
+from ..baselines import FeatureDeflate, ImageCodec, PlyDeflate, PngCompression
+from ..choices import BASELINE_NAMES, IMAGE_CODEC_QUALITIES, OUTPUT_BASELINES, PAPER_LAMBDAS
 from ..codec import bytes_report, check_lambda
 from ..errors import DataError, InputError
 from ..export.files import write_json, write_text
@@ -62,15 +71,61 @@ from ..gaussians import Gaussians
 from ..measure import machine_name, synchronize, timed
 from ..metrics.image import ImageMetrics
 from ..model.codecsplat import model_id
+from ..model.rdo import rdo_config
 from .geometry import ReferenceDepth, depth_errors
 from .protocols import (PROTOCOLS, Protocol, Sample, SamplePlan, chunk_plan, eager_plan, find_scenes, folder_index_plan,
                         is_chunk_folder, nearest_context_images, scene_samples, select_scenes)
-from .report import (BACKBONE, CODECSPLAT, COPY_NEAREST, Row, format_bytes, markdown_report, plot_comparison,
-                     plot_distortion_vs_time, plot_rate_distortion, summarize, table1, table2, table3)
+from .report import (BACKBONE, CODECSPLAT, COPY_NEAREST, Row, format_bytes, image_codec_method, markdown_report,
+                     plot_comparison, plot_distortion_vs_time, plot_rate_distortion, rdo_method, steps_text,
+                     summarize, table1, table2, table3)
+
+SIDE_PARTS = ("header", "cameras")
+"""Parts of a CodecSplat bitstream that the image-codec rows count too: the cameras both sides must send."""
 
 
 # --------------------------------------------------------------------------------------------------
 # Running the methods
+@dataclass(frozen=True)
+class RDOSetting:
+    """One encoder rate-distortion optimisation that ``codecsplat eval`` runs at every lambda: a ``preset`` of
+    :data:`codecsplat_warp.model.rdo.PRESET_STEPS`, or ``steps`` (which override the preset's count), with the
+    quantisation-noise ``seed``.
+
+    Raises:
+        InputError: an unknown preset, steps that are not an integer >= 0, or a setting without any step (the
+            amortised encoder, whose rows every evaluation has).
+    """
+
+    preset: str = "fast"
+    steps: int | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not rdo_config(self.preset, self.steps, seed=self.seed).optimises:
+            raise InputError(f"RDO setting {self.name!r} takes no optimisation step: it is the amortised encoder, "
+                             "whose CodecSplat rows every evaluation has")
+
+    @property
+    def name(self) -> str:
+        """``slow`` for a preset, ``N steps`` for a step count."""
+        return self.preset if self.steps is None else steps_text(self.steps)
+
+    @property
+    def method(self) -> str:
+        """The method of its rows (``CodecSplat RDO (slow)``)."""
+        return rdo_method(self.name)
+
+    @property
+    def resolved_steps(self) -> int:
+        """The optimisation steps it takes (a preset's count as :mod:`codecsplat_warp.model.rdo` sets it now)."""
+        return rdo_config(self.preset, self.steps).steps
+
+    @property
+    def encode_options(self) -> dict:
+        """Keyword arguments of :meth:`CodecSplat.encode_scene`."""
+        return {"preset": self.preset, "steps": self.steps, "seed": self.seed}
+
+
 @contextlib.contextmanager
 def backbone_clock(model: torch.nn.Module, device: torch.device) -> Iterator[dict]:
     """Record in the yielded dict, under ``"features_done"``, the clock time when the backbone's last
@@ -96,10 +151,12 @@ class Evaluator:
         model: a :class:`CodecSplat` with its codec, in eval mode, on ``device``.
         metrics: the image metrics.
         lambdas: CodecSplat operating points.
-        baselines: subset of :data:`BASELINE_NAMES`.
+        baselines: the baselines on the codec-free output to run, a subset of :data:`OUTPUT_BASELINES`.
         png: the PNG baseline with its settings (K_SH and Lloyd steps).
         keep_renders: keep each method's target renders of the last sample in :attr:`renders`.
         reference: reference depth of the context views (None: no depth errors).
+        image_codecs: the image-codec rows, one per codec (format and quality).
+        rdo: the RDO settings, each run at every lambda beside the amortised CodecSplat rows.
 
     Attributes:
         renders: after :meth:`run` with ``keep_renders``, one [T,H,W,3] uint8 array per returned row, in order.
@@ -107,7 +164,8 @@ class Evaluator:
 
     def __init__(self, model, metrics: ImageMetrics, lambdas, baselines, device: torch.device,
                  png: PngCompression = PngCompression(), keep_renders: bool = False,
-                 reference: ReferenceDepth | None = None):
+                 reference: ReferenceDepth | None = None, image_codecs: Sequence[ImageCodec] = (),
+                 rdo: Sequence[RDOSetting] = ()):
         self.model = model
         self.reference = reference
         self.keep_renders = keep_renders
@@ -119,11 +177,13 @@ class Evaluator:
         self.ply_deflate = PlyDeflate()
         self.png = png
         self.feature = FeatureDeflate()
+        self.image_codecs = list(image_codecs)
+        self.rdo = list(rdo)
 
     @property
     def steps_per_sample(self) -> int:
-        """Methods run per sample (progress bar units)."""
-        return 2 + len(self.lambdas) + len(self.baselines)
+        """Methods run per sample, the rows :meth:`run` returns (progress bar units)."""
+        return 2 + len(self.lambdas) * (1 + len(self.rdo)) + len(self.baselines) + len(self.image_codecs)
 
     def warm_up(self, sample: Sample) -> None:
         """Run the network, codec and renderer once, untimed (loads Warp kernels, warms allocators)."""
@@ -132,6 +192,8 @@ class Evaluator:
             self.model(sample.context_images, sample.context_cameras)
         data = self.model.encode(sample.context_images, sample.context_cameras, self.lambdas[0])
         self.model.render(self.model.decode(data), sample.target_cameras)
+        if self.rdo:  # the optimisation's backward pass
+            self.model.encode(sample.context_images, sample.context_cameras, self.lambdas[0], steps=1)
 
     def run(self, sample: Sample, progress: tqdm | None = None) -> list[Row]:
         """Every method's :class:`Row` on one sample."""
@@ -140,14 +202,17 @@ class Evaluator:
         rows = []
         self.renders = []
 
-        def step(row: Row) -> None:
+        def step(row: Row) -> Row:
             rows.append(row)
             if progress is not None:
                 progress.update(1)
+            return row
 
         step(self._copy_nearest(sample))
-        for lam in self.lambdas:
-            step(self._codecsplat(sample, lam, reference))
+        coded = [step(self._codecsplat(sample, lam, reference)) for lam in self.lambdas]
+        for setting in self.rdo:
+            for lam in self.lambdas:
+                step(self._codecsplat(sample, lam, reference, setting))
         with torch.no_grad(), self._autocast():
             out, gen_s = timed(lambda: self.model(sample.context_images, sample.context_cameras), self.device)
         gaussians = out["gaussians"].detach()
@@ -162,6 +227,9 @@ class Evaluator:
                                       self.png.encode, self.png.decode))
         if "feature" in self.baselines:
             step(self._feature_codec(sample, out, gen_s, reference))
+        side = {part: coded[0].parts[part] for part in SIDE_PARTS}  # the same at every lambda
+        for codec in self.image_codecs:
+            step(self._image_codec(sample, codec, side, reference))
         return rows
 
     def _autocast(self):
@@ -195,19 +263,40 @@ class Evaluator:
         rgb = nearest_context_images(sample.context_images, sample.context_cameras, sample.target_cameras)
         return Row(sample.scene, COPY_NEAREST, "no bitstream", 0, self._score_rgb(rgb, sample), 0.0, 0.0, 0.0)
 
-    def _codecsplat(self, sample: Sample, lam: float, reference: torch.Tensor | None) -> Row:
+    def _codecsplat(self, sample: Sample, lam: float, reference: torch.Tensor | None,
+                    rdo: RDOSetting | None = None) -> Row:
+        """CodecSplat at ``lam``, amortised or with the encoder optimisation ``rdo`` (its steps are compress time)."""
+        options = {} if rdo is None else rdo.encode_options
         with backbone_clock(self.model, self.device) as marks:
             synchronize(self.device)
             start = time.perf_counter()
-            encoded = self.model.encode_scene(sample.context_images, sample.context_cameras, lam)
+            encoded = self.model.encode_scene(sample.context_images, sample.context_cameras, lam, **options)
             synchronize(self.device)
             end = time.perf_counter()
         decoded, decompress_s = timed(lambda: self.model.decode_scene(encoded.data), self.device)
-        return Row(sample.scene, CODECSPLAT, f"λ={lam:g}", len(encoded.data), self._score(decoded.gaussians, sample),
-                   gen_s=marks["features_done"] - start, compress_s=end - marks["features_done"],
-                   decompress_s=decompress_s, lam=lam, parts=bytes_report(encoded.data),
-                   self_render=self.self_render(decoded.gaussians, sample),
-                   depth=self._depth_errors(decoded.depth, reference))
+        return Row(sample.scene, CODECSPLAT if rdo is None else rdo.method, f"λ={lam:g}", len(encoded.data),
+                   self._score(decoded.gaussians, sample), gen_s=marks["features_done"] - start,
+                   compress_s=end - marks["features_done"], decompress_s=decompress_s, lam=lam,
+                   parts=bytes_report(encoded.data), self_render=self.self_render(decoded.gaussians, sample),
+                   depth=self._depth_errors(decoded.depth, reference),
+                   rdo=None if encoded.rdo is None else encoded.rdo.to_dict())
+
+    def _image_codec(self, sample: Sample, codec: ImageCodec, side: dict[str, int],
+                     reference: torch.Tensor | None) -> Row:
+        """The context photographs through ``codec``, then the codec-free model on the decoded ones; ``side``: the
+        bytes per part of :data:`SIDE_PARTS` that the row counts besides the image files."""
+        photographs = to_uint8_frames(sample.context_images)
+        files, compress_s = timed(lambda: codec.encode(photographs), self.device)
+        images, decompress_s = timed(lambda: codec.decode(files, self.device), self.device)
+        with torch.no_grad(), self._autocast():
+            out, gen_s = timed(lambda: self.model(images, sample.context_cameras), self.device)
+        gaussians = out["gaussians"].detach()
+        parts = {**side, **{f"view{v}": len(data) for v, data in enumerate(files)}}
+        parts["total"] = sum(parts.values())
+        return Row(sample.scene, image_codec_method(codec.label), codec.setting, parts["total"],
+                   self._score(gaussians, sample), gen_s, compress_s, decompress_s, parts=parts,
+                   self_render=self.self_render(gaussians, sample),
+                   depth=self._depth_errors(out["D_enc"], reference), quality=codec.quality)
 
     def _gaussian_codec(self, sample: Sample, method: str, setting: str, gaussians: Gaussians, gen_s: float,
                         encode: Callable, decode: Callable) -> Row:
@@ -262,6 +351,22 @@ class EvalConfig:
     mvs_depth: str | None = None
     """Folder of reference depth, ``<scene folder name>/depth.json`` per scene (``codecsplat depth``): scores the
     context views' depth maps (None: no depth errors)."""
+    webp_qualities: tuple[int, ...] = IMAGE_CODEC_QUALITIES["webp"]
+    """Qualities (0-100) of the WebP + codec-free rows, with ``webp`` in ``baselines``."""
+    jpeg_qualities: tuple[int, ...] = IMAGE_CODEC_QUALITIES["jpeg"]
+    """Qualities (1-100) of the JPEG + codec-free rows, with ``jpeg`` in ``baselines``."""
+    rdo_presets: tuple[str, ...] = ()
+    """Encoder RDO presets (:data:`codecsplat_warp.model.rdo.PRESET_STEPS`, those with steps): each adds CodecSplat
+    rows at every lambda, encoded with that optimisation."""
+    rdo_steps: tuple[int, ...] = ()
+    """RDO step counts (>= 1): each adds CodecSplat rows at every lambda, optimised for that many steps."""
+    rdo_seed: int = 0
+    """Seed of the RDO rows' quantisation noise."""
+
+    @property
+    def image_qualities(self) -> dict[str, tuple[int, ...]]:
+        """The qualities of each image-codec baseline, by its name in ``baselines``."""
+        return {"webp": self.webp_qualities, "jpeg": self.jpeg_qualities}
 
 
 RUN_SETTINGS = ("out", "progress", "resume", "renders")
@@ -285,12 +390,14 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
     its samples are measured again, and ``notes`` says so.
 
     Returns:
-        {"config", "device", "machine", "model_id", "scenes", "skipped", "lpips", "files", "plan", "samples_done",
-        "samples_total", "summary", "rows", "depth_reference" (folder, samples and context views scored, and a
-        sentence saying so), "notes", "tables" (table1, table2, table3)}.
+        {"config", "device", "machine", "model_id", "scenes", "skipped", "lpips", "files", "plan", "rdo" (each RDO
+        setting's method, preset, steps and seed), "samples_done", "samples_total", "summary", "rows",
+        "depth_reference" (folder, samples and context views scored, and a sentence saying so), "notes", "tables"
+        (table1, table2, table3)}.
     Raises:
         InputError: unknown protocol or baseline, empty lambda list, bad size, a chunk folder without an index
-            or with the ``scene`` protocol.
+            or with the ``scene`` protocol; an image baseline without qualities, a bad or repeated quality; an
+            unknown, repeated or step-less RDO preset or step count.
         DataError: no usable scene; an index naming scenes or frames the data does not have; results.json of
             another evaluation in ``out`` (with ``resume``); a ``mvs_depth`` that is not a folder, or a corrupt
             ``depth.json`` or depth PNG in it.
@@ -304,14 +411,17 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
     for lam in config.lambdas:
         check_lambda(lam)
     png = PngCompression(sh_clusters=config.png_sh_clusters, kmeans_iterations=config.kmeans_iterations)
+    image_codecs = _image_codecs(config)
+    rdo = _rdo_settings(config)
     reference = ReferenceDepth(config.mvs_depth) if config.mvs_depth else None
     metrics = ImageMetrics(config.lpips_weights, device)
     plan = _plan(config, protocol, model)
     if not plan.keys:
         raise DataError(f"no scene under {config.data} is usable with the {protocol.name} protocol: "
                         + ("; ".join(f"{s['scene']}: {s['reason']}" for s in plan.skipped) or "the index selects none"))
-    evaluator = Evaluator(model, metrics, config.lambdas, config.baselines, device, png, keep_renders=config.renders,
-                          reference=reference)
+    evaluator = Evaluator(model, metrics, config.lambdas, [b for b in config.baselines if b in OUTPUT_BASELINES],
+                          device, png, keep_renders=config.renders, reference=reference, image_codecs=image_codecs,
+                          rdo=rdo)
     out = pathlib.Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
     files = {"json": out / "results.json", "markdown": out / "tables.md", "rate_distortion": out / "rate_distortion.png",
@@ -321,6 +431,7 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
         "machine": machine_name(device), "model_id": model_id(model), "scenes": sorted({k[0] for k in plan.keys}),
         "skipped": plan.skipped, "lpips": metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1",
         "files": {k: str(v) for k, v in files.items()}, "plan": [[s, list(c), list(t)] for s, c, t in plan.keys],
+        "rdo": [{"method": s.method, "preset": s.preset, "steps": s.resolved_steps, "seed": s.seed} for s in rdo],
     }
     rows, start, notes = _finished(files["json"], header) if config.resume else ([], 0, [])
     for note in notes:
@@ -349,6 +460,38 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
     plot_rate_distortion(summary, files["rate_distortion"])
     plot_distortion_vs_time(summary, files["distortion_vs_time"])
     return result
+
+
+def _image_codecs(config: EvalConfig) -> list[ImageCodec]:
+    """The image-codec rows of ``config``: each image baseline it names at each of its qualities.
+
+    Raises:
+        InputError: an image baseline without qualities, or with a repeated or bad one.
+    """
+    codecs = []
+    for name in config.baselines:
+        if name in IMAGE_CODEC_QUALITIES:
+            qualities = config.image_qualities[name]
+            if not qualities:
+                raise InputError(f"give at least one {name} quality, or leave {name} out of the baselines")
+            _once(qualities, f"{name} qualities")
+            codecs += [ImageCodec(name, quality) for quality in qualities]
+    return codecs
+
+
+def _rdo_settings(config: EvalConfig) -> list[RDOSetting]:
+    """The RDO settings of ``config``: its presets, then its step counts (InputError when one is bad or repeated)."""
+    _once(config.rdo_presets, "RDO presets")
+    _once(config.rdo_steps, "RDO step counts")
+    return ([RDOSetting(preset=preset, seed=config.rdo_seed) for preset in config.rdo_presets]
+            + [RDOSetting(steps=steps, seed=config.rdo_seed) for steps in config.rdo_steps])
+
+
+def _once(values: Sequence, what: str) -> None:
+    """InputError naming the values that ``values`` repeats."""
+    repeated = sorted({str(v) for v in values if list(values).count(v) > 1})
+    if repeated:
+        raise InputError(f"{what} must each be given once, got {', '.join(repeated)} more than once")
 
 
 def _write_renders(path: pathlib.Path, sample: Sample, rows: list[Row], renders: list[np.ndarray]) -> None:
@@ -422,7 +565,8 @@ def _finished(file: pathlib.Path, header: dict) -> tuple[list[Row], int, list[st
 
 
 def _identity(header: dict) -> dict:
-    """What must match for a run to resume another: the options that change results, model, device, LPIPS, plan."""
+    """What must match for a run to resume another: the options that change results, model, device, LPIPS, plan,
+    and the steps each RDO setting takes (a preset's count may change between versions)."""
     config = header.get("config")
     if isinstance(config, dict):  # options added since a file was written read as their defaults
         config = {**CONFIG_DEFAULTS, **config}
@@ -432,7 +576,8 @@ def _identity(header: dict) -> dict:
                 config[key] = str(pathlib.Path(config[key]).resolve())
         config = json.loads(json.dumps(config))  # tuples as lists, as read back from the file
     return {"options": config, "model": header.get("model_id"), "device": header.get("device"),
-            "LPIPS": header.get("lpips"), "samples": header.get("plan")}
+            "LPIPS": header.get("lpips"), "samples": header.get("plan"),
+            "RDO steps": [s.get("steps") for s in header.get("rdo", [])]}
 
 
 def _protocol(config: EvalConfig) -> Protocol:

@@ -4,6 +4,7 @@ plots."""
 
 from __future__ import annotations
 
+import itertools
 import pathlib
 import statistics
 from dataclasses import dataclass, field
@@ -15,11 +16,42 @@ from ..measure import format_table
 CODECSPLAT = "CodecSplat"
 BACKBONE = "CodecSplat w/o codec"
 COPY_NEAREST = "Copy nearest context view"
+IMAGE_CODEC_SUFFIX = " + codec-free"
+
+
+def rdo_method(name: str) -> str:
+    """The method of the CodecSplat rows encoded with rate-distortion optimisation ``name`` (a preset such as
+    ``slow``, or :func:`steps_text`): ``CodecSplat RDO (slow)``."""
+    return f"{CODECSPLAT} RDO ({name})"
+
+
+def steps_text(steps: int) -> str:
+    """``1 step``, ``50 steps``."""
+    return f"{steps} step" if steps == 1 else f"{steps} steps"
+
+
+def image_codec_method(label: str) -> str:
+    """The method of the image-codec baseline in format ``label`` (``WebP``, ``JPEG``): the context photographs
+    coded as image files, the codec-free model run on the decoded ones (``WebP + codec-free``)."""
+    return label + IMAGE_CODEC_SUFFIX
+
+
+def generated_at_receiver(method: str) -> bool:
+    """Whether ``method`` generates its Gaussians after decompression (the image-codec baselines): its GS generation
+    is receiver time, not sender time."""
+    return method.endswith(IMAGE_CODEC_SUFFIX)
 
 
 @dataclass
 class Row:
     """One method on one sample: bytes, quality of the target renders, seconds, and the geometry measures.
+
+    ``bytes``: the method's whole coded size; ``parts`` its bytes per part where it has parts (CodecSplat:
+    :func:`~codecsplat_warp.codec.bytes_report`; the image codecs: ``header`` and ``cameras`` as CodecSplat spends
+    them, then ``view0`` ... one image file per view, and ``total``). ``lam``: the CodecSplat rate trade-off;
+    ``quality``: the image codec's quality (None: not such a row). ``rdo``: the encoder's rate-distortion
+    optimisation (:meth:`~codecsplat_warp.model.rdo.RDOResult.to_dict`; None: the amortised encoder or not
+    CodecSplat). Seconds: ``gen_s`` GS generation, ``compress_s``, ``decompress_s``.
 
     ``self_render``: the image metrics of the method's Gaussians rendered into the sample's own context views
     against the context images (None: the method has no Gaussians). ``depth``: the errors of the method's depth
@@ -39,6 +71,8 @@ class Row:
     parts: dict[str, int] = field(default_factory=dict)
     self_render: dict[str, float] | None = None
     depth: dict[str, float] | None = None
+    quality: int | None = None
+    rdo: dict | None = None
 
 
 SELF_RENDER_PREFIX = "self_"
@@ -57,8 +91,8 @@ def summarize(rows: list[Row]) -> list[dict]:
         groups.setdefault((row.method, row.setting), []).append(row)
     summary = []
     for (method, setting), group in groups.items():
-        entry = {"method": method, "setting": setting, "lam": group[0].lam, "samples": len(group),
-                 "bytes": statistics.fmean(r.bytes for r in group)}
+        entry = {"method": method, "setting": setting, "lam": group[0].lam, "quality": group[0].quality,
+                 "samples": len(group), "bytes": statistics.fmean(r.bytes for r in group)}
         for name in group[0].metrics:
             entry[name] = statistics.fmean(r.metrics[name] for r in group)
         for key in ("gen_s", "compress_s", "decompress_s"):
@@ -134,25 +168,54 @@ def _as_text(columns) -> list[tuple[str, str, str]]:
 
 
 def table2(summary: list[dict]) -> str:
-    """Table 2: GS generation, compression and decompression seconds; CodecSplat averaged over its lambdas."""
-    rows = [s for s in _paper_order(summary) if s["method"] not in (CODECSPLAT, COPY_NEAREST)]
-    codec = [s for s in summary if s["method"] == CODECSPLAT]
-    if codec:
-        lams = sorted(s["lam"] for s in codec)
-        setting = f"λ={lams[0]:g}" if len(lams) == 1 else f"λ={lams[0]:g},…,{lams[-1]:g}"
-        mean = {k: statistics.fmean(s[k] for s in codec) for k in ("gen_s", "compress_s", "decompress_s")}
-        rows.append({"method": CODECSPLAT, "setting": setting, **mean})
+    """Table 2: GS generation, compression and decompression seconds of every method but the copy floor; a method
+    run at several lambdas or qualities (CodecSplat, each RDO setting, the image codecs) as one row, the means over
+    them."""
+    rows = []
+    for group in _by_method(summary):
+        if group[0]["method"] == COPY_NEAREST:
+            continue
+        if _curve(group[0]) is None:
+            rows += group
+            continue
+        mean = {k: statistics.fmean(s[k] for s in group) for k in ("gen_s", "compress_s", "decompress_s")}
+        rows.append({"method": group[0]["method"], "setting": _span(group), **mean})
     return format_table(rows, TABLE2_COLUMNS)
 
 
+def _curve(entry: dict) -> tuple[str, float] | None:
+    """What a method's entries vary along: ``("λ", lambda)``, ``("q", image quality)``, or None (one setting)."""
+    if entry.get("lam") is not None:
+        return "λ", entry["lam"]
+    if entry.get("quality") is not None:
+        return "q", entry["quality"]
+    return None
+
+
+def _span(group: list[dict]) -> str:
+    """The settings of one method's entries (in order) as Table 2 prints them: ``λ=16`` or ``λ=16,…,1024``."""
+    name, first = _curve(group[0])
+    return f"{name}={first:g}" if len(group) == 1 else f"{name}={first:g},…,{_curve(group[-1])[1]:g}"
+
+
+def _by_method(summary: list[dict]) -> list[list[dict]]:
+    """The entries of each method, methods in first-appearance order but those with lambdas (CodecSplat, then each
+    RDO setting) last, as in the paper; within a method by lambda or quality."""
+    methods: dict[str, list[dict]] = {}
+    for entry in summary:
+        methods.setdefault(entry["method"], []).append(entry)
+    groups = sorted(methods.values(), key=lambda group: group[0].get("lam") is not None)  # stable
+    return [sorted(group, key=lambda s: _curve(s)[1] if _curve(s) else 0) for group in groups]
+
+
 def _paper_order(summary: list[dict]) -> list[dict]:
-    """Baselines and the reference first, CodecSplat rows (by lambda) last, as in the paper."""
-    return [s for s in summary if s["method"] != CODECSPLAT] + sorted(
-        (s for s in summary if s["method"] == CODECSPLAT), key=lambda s: s["lam"])
+    """The entries in :func:`_by_method` order: baselines and the reference first, CodecSplat rows (by lambda) last."""
+    return [entry for group in _by_method(summary) for entry in group]
 
 
 def plot_rate_distortion(summary: list[dict], path: pathlib.Path) -> None:
-    """Quality against bytes per scene (log scale): CodecSplat's lambda curve, baselines as points."""
+    """Quality against bytes per scene (log scale): a line per method with several lambdas or qualities (CodecSplat,
+    each RDO setting, the image codecs), the other methods as points."""
     names = [n for n in ("psnr", "ssim", "lpips_vgg", "lpips_alex") if n in summary[0]]
     labels = {"psnr": "PSNR (dB) ↑", "ssim": "SSIM ↑", "lpips_vgg": "LPIPS-VGG ↓", "lpips_alex": "LPIPS-Alex ↓"}
     fig, axes = _figure(len(names))
@@ -164,14 +227,23 @@ def plot_rate_distortion(summary: list[dict], path: pathlib.Path) -> None:
 
 
 def plot_distortion_vs_time(summary: list[dict], path: pathlib.Path) -> None:
-    """PSNR against encoder (GS generation + compression) and decoder seconds, log scale."""
+    """PSNR against sender seconds (GS generation + compression) and receiver seconds (decompression), log scale;
+    for the methods that generate their Gaussians at the receiver (the image codecs) GS generation counts there."""
     fig, axes = _figure(2)
-    for ax, (label, x) in zip(axes, (("encode s (GS gen. + compress)", lambda s: s["gen_s"] + s["compress_s"]),
-                                      ("decompress s", lambda s: s["decompress_s"]))):
+    for ax, (label, x) in zip(axes, (("sender s: GS gen. + compress (image codecs: compress)", _sender_seconds),
+                                      ("receiver s: decompress (image codecs: + GS gen.)", _receiver_seconds))):
         _plot_methods(ax, summary, x=x, y=lambda s: s["psnr"], connect=False)
         ax.set_xlabel(label)
         ax.set_ylabel("PSNR (dB) ↑")
     _save(fig, axes, path)
+
+
+def _sender_seconds(entry: dict) -> float:
+    return entry["compress_s"] + (0.0 if generated_at_receiver(entry["method"]) else entry["gen_s"])
+
+
+def _receiver_seconds(entry: dict) -> float:
+    return entry["decompress_s"] + (entry["gen_s"] if generated_at_receiver(entry["method"]) else 0.0)
 
 
 def pyplot():
@@ -190,20 +262,24 @@ def _figure(panels: int):
 
 
 def _plot_methods(ax, summary: list[dict], x: Callable, y: Callable, connect: bool) -> None:
-    """CodecSplat's operating points (joined in lambda order when ``connect``) and one marker per other method,
-    on a log x axis; the copy-nearest floor (no bytes, no time) as a dashed horizontal line."""
-    codec = sorted((s for s in summary if s["method"] == CODECSPLAT), key=lambda s: s["lam"])
-    if codec:
-        ax.plot([x(s) for s in codec], [y(s) for s in codec], "o-" if connect else "o", color="C3", label=CODECSPLAT,
-                zorder=3)
-        for s in codec:
-            ax.annotate(f"λ={s['lam']:g}", (x(s), y(s)), textcoords="offset points", xytext=(4, -10), fontsize=7)
-    styles = zip("sD^vP*X", ("C0", "C1", "C2", "C4", "C5", "C6", "C7"))
-    for s, (marker, colour) in zip((s for s in summary if s["method"] not in (CODECSPLAT, COPY_NEAREST)), styles):
-        ax.plot([x(s)], [y(s)], marker, color=colour, label=f"{s['method']} ({s['setting']})")
-    for s in summary:
-        if s["method"] == COPY_NEAREST:
-            ax.axhline(y(s), color="0.4", ls="--", lw=1, label=f"{COPY_NEAREST} (0 bytes)")
+    """Every method on a log x axis: one with several lambdas or qualities as one series (a line in lambda or
+    quality order when ``connect``, points otherwise), the amortised CodecSplat's points labelled with their lambda
+    and the image codecs' with their quality; one with a single setting as a marker; the copy-nearest floor (no
+    bytes, no time) as a dashed horizontal line."""
+    styles = zip(itertools.cycle("sD^vP*Xph<>"), itertools.cycle(f"C{i}" for i in range(10) if i != 3))
+    for group in _by_method(summary):
+        method, curve = group[0]["method"], _curve(group[0])
+        if method == COPY_NEAREST:
+            ax.axhline(y(group[0]), color="0.4", ls="--", lw=1, label=f"{COPY_NEAREST} (0 bytes)")
+            continue
+        marker, colour = ("o", "C3") if method == CODECSPLAT else next(styles)
+        ax.plot([x(s) for s in group], [y(s) for s in group], marker + ("-" if connect and curve else ""),
+                color=colour, label=method if curve else f"{method} ({group[0]['setting']})",
+                zorder=3 if method == CODECSPLAT else 2)
+        if curve and (method == CODECSPLAT or curve[0] == "q"):
+            for s in group:
+                name, value = _curve(s)
+                ax.annotate(f"{name}={value:g}", (x(s), y(s)), textcoords="offset points", xytext=(4, -10), fontsize=7)
     ax.set_xscale("log")
     ax.xaxis.set_minor_formatter(pyplot().NullFormatter())
     ax.grid(True, which="both", alpha=0.3)
@@ -261,17 +337,21 @@ def markdown_report(result: dict) -> str:
         "",
         "## Table 1: bytes per scene and target-view quality",
         "",
+        *_method_notes(result),
         result["tables"]["table1"],
         "",
         "## Table 2: timing (seconds)",
         "",
+        *(["GS generation of the image codecs runs at the receiver, on the decoded photographs.", ""]
+          if any(generated_at_receiver(s["method"]) for s in result["summary"]) else []),
         result["tables"]["table2"],
         "",
         "## Table 3: self-render and depth",
         "",
         "Self-render: each method's Gaussians rendered into the sample's own context views, against the context "
         "images (mean over views, then over samples). Depth: the codec-free row (→PLY float32) scores the encoder "
-        "depth D_enc, CodecSplat at each λ the decoder depth D̂, CodecSplat w/ Deflate its float16 D_enc; "
+        "depth D_enc, CodecSplat at each λ the decoder depth D̂, CodecSplat w/ Deflate its float16 D_enc, the "
+        "image codecs the encoder depth of the decoded photographs; "
         "AbsRel and δ<1.25 over the pixels of all context views of a sample that have reference depth, then the "
         "mean over samples. " + result["depth_reference"]["text"],
         "",
@@ -284,3 +364,16 @@ def markdown_report(result: dict) -> str:
         lines += [note, ""]
     return "\n".join(lines)
 
+
+def _method_notes(result: dict) -> list[str]:
+    """Paragraphs on the image-codec and RDO rows of ``result``, where it has them."""
+    notes = []
+    if any(generated_at_receiver(s["method"]) for s in result["summary"]):
+        notes += ["WebP / JPEG + codec-free: each context photograph coded as an image file at quality q, decoded, "
+                  "and the codec-free model run on the decoded photographs with the true cameras; bytes are the image "
+                  "files plus the header and camera bytes of the sample's CodecSplat bitstream.", ""]
+    if result["rdo"]:
+        settings = ", ".join(f"{s['method']}: {steps_text(s['steps'])}" for s in result["rdo"])
+        notes += [f"CodecSplat RDO: the latents optimised for each scene at the encoder ({settings}; seed "
+                  f"{result['rdo'][0]['seed']}); compress time includes the optimisation.", ""]
+    return notes

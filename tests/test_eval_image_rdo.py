@@ -1,0 +1,227 @@
+"""``codecsplat eval``'s image-codec rows (WebP / JPEG + codec-free) and RDO rows (CodecSplat RDO beside the
+amortised CodecSplat): what each row runs and counts, the progress units, results.json and the tables, resuming,
+and the plots. A tiny coding model on tiny procedural scene folders, on the CPU."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+import codecsplat_warp.eval.report as report
+from codecsplat_warp.baselines import ImageCodec
+from codecsplat_warp.cli import main
+from codecsplat_warp.errors import DataError, InputError
+from codecsplat_warp.eval.evaluate import EvalConfig, Evaluator, RDOSetting, evaluate
+from codecsplat_warp.eval.protocols import PROTOCOLS, find_scenes, index_samples
+from codecsplat_warp.eval.report import (BACKBONE, CODECSPLAT, COPY_NEAREST, plot_distortion_vs_time,
+                                         plot_rate_distortion, table1, table2)
+from codecsplat_warp.export.video import to_uint8_frames
+from codecsplat_warp.metrics.image import ImageMetrics
+from codecsplat_warp.model import rdo
+from codecsplat_warp.model.pretrained import save_pretrained
+from conftest import tiny_coding_model
+from test_cli_commands import write_scene
+
+INDEX = {"a": {"context": [0, 2], "target": [1]}, "b": {"context": [0, 2], "target": [1]}}
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    """Scene folders a and b (3 procedural views at 48x32) and an index with one sample each."""
+    root = tmp_path_factory.mktemp("scenes")
+    write_scene(root / "data" / "a", seed=1, views=3)
+    write_scene(root / "data" / "b", seed=2, views=3)
+    (root / "index.json").write_text(json.dumps(INDEX))
+    return root
+
+
+@pytest.fixture(scope="module")
+def model():
+    return tiny_coding_model(0)
+
+
+class _Counter:
+    """Counts progress-bar units."""
+
+    n = 0
+
+    def update(self, n: int) -> None:
+        self.n += n
+
+
+def test_image_codec_and_rdo_rows_of_one_sample(scenes, model, monkeypatch):
+    monkeypatch.setitem(rdo.PRESET_STEPS, "medium", 2)  # a preset's count, kept tiny
+    sample = index_samples(find_scenes(scenes / "data"), scenes / "index.json", PROTOCOLS["scene"])[0]
+    codecs = [ImageCodec("webp", 5), ImageCodec("webp", 90), ImageCodec("jpeg", 10)]
+    evaluator = Evaluator(model, ImageMetrics(None), (64.0,), (), torch.device("cpu"), keep_renders=True,
+                          image_codecs=codecs, rdo=[RDOSetting(preset="medium"), RDOSetting(steps=1)])
+    inputs = []
+    forward = model.forward
+    monkeypatch.setattr(model, "forward", lambda images, cameras: inputs.append(images) or forward(images, cameras))
+    progress = _Counter()
+    rows = evaluator.run(sample, progress)
+    assert [(r.method, r.setting) for r in rows] == [
+        (COPY_NEAREST, "no bitstream"), (CODECSPLAT, "λ=64"), ("CodecSplat RDO (medium)", "λ=64"),
+        ("CodecSplat RDO (1 step)", "λ=64"), (BACKBONE + "→PLY", "float32"), ("WebP + codec-free", "q=5"),
+        ("WebP + codec-free", "q=90"), ("JPEG + codec-free", "q=10")]
+    assert progress.n == evaluator.steps_per_sample == len(rows) == len(evaluator.renders)
+    amortised, medium, one = rows[1:4]
+    assert amortised.rdo is None and (medium.rdo["steps"], one.rdo["steps"]) == (2, 1)
+    assert medium.compress_s > medium.rdo["seconds"] > 0  # the optimisation is compress time
+    # every image row: the files plus the header and cameras of the CodecSplat bitstream; the model saw the decoded
+    # photographs (the codec-free row saw the originals)
+    photographs = to_uint8_frames(sample.context_images)
+    assert torch.equal(inputs[0], sample.context_images)
+    for row, codec, seen in zip(rows[5:], codecs, inputs[1:], strict=True):
+        files = codec.encode(photographs)
+        assert row.parts == {"header": amortised.parts["header"], "cameras": amortised.parts["cameras"],
+                             "view0": len(files[0]), "view1": len(files[1]), "total": row.bytes}
+        assert row.bytes == sum(map(len, files)) + amortised.parts["header"] + amortised.parts["cameras"]
+        assert torch.equal(seen, codec.decode(files)) and not torch.equal(seen, sample.context_images)
+        assert row.quality == codec.quality and row.self_render["psnr"] > 0 and row.depth == {}
+        assert min(row.gen_s, row.compress_s, row.decompress_s) > 0
+    assert rows[5].bytes < rows[6].bytes
+
+
+def _config(scenes, out, **changes) -> EvalConfig:
+    config = EvalConfig(data=str(scenes / "data"), index=str(scenes / "index.json"), out=str(out), protocol="scene",
+                        lambdas=(64.0,), baselines=("webp", "jpeg"), webp_qualities=(5, 50), jpeg_qualities=(5,),
+                        rdo_presets=("medium",), rdo_steps=(3,), progress=False)
+    return replace(config, **changes)
+
+
+def _fake_run(calls: list, interrupt_at: str | None):
+    """Evaluator.run that records the sample and returns one row per unit of work, raising KeyboardInterrupt
+    at scene ``interrupt_at``."""
+
+    def run(self, sample, progress=None):
+        if sample.scene == interrupt_at:
+            raise KeyboardInterrupt
+        calls.append(sample.scene)
+        return [report.Row(sample.scene, "m", str(i), 1, {"psnr": 20.0}, 1.0, 1.0, 1.0)
+                for i in range(self.steps_per_sample)]
+
+    return run
+
+
+def test_the_new_options_belong_to_the_evaluation_a_run_resumes(scenes, model, tmp_path, monkeypatch):
+    monkeypatch.delenv("CODECSPLAT_LPIPS_WEIGHTS", raising=False)  # no LPIPS: faster
+    monkeypatch.setattr(Evaluator, "warm_up", lambda self, sample: None)
+    calls: list[str] = []
+    monkeypatch.setattr(Evaluator, "run", _fake_run(calls, interrupt_at="b"))
+    with pytest.raises(KeyboardInterrupt):
+        evaluate(model, _config(scenes, tmp_path), torch.device("cpu"))
+    saved = json.loads((tmp_path / "results.json").read_text())
+    assert saved["samples_done"] == 1 and len(saved["rows"]) == 2 + 2 + 1 + 2 + 1  # floor, λ x 3, PLY, images
+    assert saved["rdo"] == [{"method": "CodecSplat RDO (medium)", "preset": "medium",
+                             "steps": rdo.PRESET_STEPS["medium"], "seed": 0},
+                            {"method": "CodecSplat RDO (3 steps)", "preset": "fast", "steps": 3, "seed": 0}]
+    monkeypatch.setattr(Evaluator, "run", _fake_run(calls, interrupt_at=None))
+    assert evaluate(model, _config(scenes, tmp_path), torch.device("cpu"))["samples_done"] == 2
+    assert calls == ["a", "b"]  # resumed: a is not run again
+    for changes in ({"webp_qualities": (5,)}, {"jpeg_qualities": (5, 20)}, {"rdo_presets": ()}, {"rdo_steps": (4,)},
+                    {"rdo_seed": 1}):
+        with pytest.raises(DataError, match=r"\(options(, RDO steps)? differ\)"):
+            evaluate(model, _config(scenes, tmp_path, **changes), torch.device("cpu"))
+    monkeypatch.setitem(rdo.PRESET_STEPS, "medium", rdo.PRESET_STEPS["medium"] + 1)  # another version's preset
+    with pytest.raises(DataError, match=r"\(RDO steps differ\)"):
+        evaluate(model, _config(scenes, tmp_path), torch.device("cpu"))
+    assert calls == ["a", "b"]
+
+
+@pytest.mark.parametrize("changes,match", [({"webp_qualities": ()}, "at least one webp quality"),
+                                           ({"jpeg_qualities": (0,)}, r"JPEG quality .*\[1, 100\]"),
+                                           ({"webp_qualities": (5, 5)}, "once, got 5"),
+                                           ({"rdo_presets": ("fast",)}, "takes no optimisation step"),
+                                           ({"rdo_presets": ("fastest",)}, "unknown RDO preset"),
+                                           ({"rdo_steps": (0,)}, "takes no optimisation step"),
+                                           ({"rdo_steps": (-2,)}, "integer >= 0")])
+def test_bad_image_qualities_and_rdo_settings_are_input_errors_before_any_work(tmp_path, changes, match):
+    with pytest.raises(InputError, match=match):
+        evaluate(None, _config(tmp_path / "nowhere", tmp_path / "out", **changes), torch.device("cpu"))
+    assert not (tmp_path / "out").exists()
+
+
+def test_eval_command_writes_the_new_rows_into_results_and_tables(scenes, model, tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("CODECSPLAT_LPIPS_WEIGHTS", raising=False)  # no LPIPS: faster
+    save_pretrained(model, tmp_path / "tiny.safetensors")
+    args = ["eval", "--data", str(scenes / "data"), "--index", str(scenes / "index.json"), "--protocol", "scene",
+            "--scenes", "a", "--lambdas", "64", "--baselines", "jpeg,webp", "--webp-qualities", "5,50",
+            "--jpeg-qualities", "20", "--rdo-steps", "1", "-o", str(tmp_path / "out"), "--device", "cpu",
+            "--checkpoint", str(tmp_path / "tiny.safetensors"), "--json"]
+    assert main(args) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert [(s["method"], s["setting"]) for s in result["summary"]] == [
+        (COPY_NEAREST, "no bitstream"), (CODECSPLAT, "λ=64"), ("CodecSplat RDO (1 step)", "λ=64"),
+        (BACKBONE + "→PLY", "float32"), ("JPEG + codec-free", "q=20"), ("WebP + codec-free", "q=5"),
+        ("WebP + codec-free", "q=50")]
+    saved = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert saved["config"]["webp_qualities"] == [5, 50] and saved["config"]["rdo_steps"] == [1]
+    assert [r["quality"] for r in saved["rows"]][-3:] == [20, 5, 50] and saved["rows"][2]["rdo"]["steps"] == 1
+    markdown = (tmp_path / "out" / "tables.md").read_text()
+    for line in ("| JPEG + codec-free | q=20 |", "| WebP + codec-free | q=5,…,50 |",
+                 "| CodecSplat RDO (1 step) | λ=64 |", "GS generation of the image codecs runs at the receiver",
+                 "CodecSplat RDO (1 step): 1 step;"):
+        assert line in markdown, line
+    assert main(args[:-1]) == 0  # everything done: resumes without running a sample
+    assert main([*args[:-1], "--rdo-seed", "1"]) == 1
+    assert "(options differ)" in capsys.readouterr().err
+    assert main([*args[:-1], "--webp-qualities", "5,x"]) == 1
+    assert "--webp-qualities must be a comma-separated list of numbers" in capsys.readouterr().err
+
+
+def _entry(method, setting, size, psnr, lam=None, quality=None, seconds=(1.0, 2.0, 3.0)):
+    return {"method": method, "setting": setting, "lam": lam, "quality": quality, "bytes": size, "psnr": psnr,
+            "ssim": 0.5, "gen_s": seconds[0], "compress_s": seconds[1], "decompress_s": seconds[2]}
+
+
+SUMMARY = [
+    _entry(COPY_NEAREST, "no bitstream", 0, 15.0, seconds=(0.0, 0.0, 0.0)),
+    _entry(CODECSPLAT, "λ=1024", 9000, 21.0, lam=1024.0), _entry(CODECSPLAT, "λ=16", 2000, 19.0, lam=16.0),
+    _entry("CodecSplat RDO (slow)", "λ=16", 1900, 19.5, lam=16.0, seconds=(1.0, 40.0, 3.0)),
+    _entry("CodecSplat RDO (slow)", "λ=1024", 8000, 21.5, lam=1024.0, seconds=(1.0, 60.0, 3.0)),
+    _entry(BACKBONE + "→PLY+Deflate", "16/8-bit", 3 * 2**20, 22.0),
+    _entry("WebP + codec-free", "q=50", 9500, 20.0, quality=50, seconds=(1.0, 0.01, 0.02)),
+    _entry("WebP + codec-free", "q=5", 4000, 17.0, quality=5, seconds=(1.0, 0.01, 0.02)),
+    _entry("JPEG + codec-free", "q=5", 3300, 16.0, quality=5), _entry("JPEG + codec-free", "q=50", 14000, 19.5,
+                                                                      quality=50)]
+
+
+def test_tables_order_and_average_each_curve():
+    first = [line.split(" | ")[:2] for line in table1(SUMMARY).splitlines()[2:]]
+    assert first == [[f"| {COPY_NEAREST}", "no bitstream"], [f"| {BACKBONE}→PLY+Deflate", "16/8-bit"],
+                     ["| WebP + codec-free", "q=5"], ["| WebP + codec-free", "q=50"], ["| JPEG + codec-free", "q=5"],
+                     ["| JPEG + codec-free", "q=50"], ["| CodecSplat", "λ=16"], ["| CodecSplat", "λ=1024"],
+                     ["| CodecSplat RDO (slow)", "λ=16"], ["| CodecSplat RDO (slow)", "λ=1024"]]
+    second = table2(SUMMARY).splitlines()[2:]
+    assert second == [f"| {BACKBONE}→PLY+Deflate | 16/8-bit | 1.000 | 2.000 | 3.000 |",
+                      "| WebP + codec-free | q=5,…,50 | 1.000 | 0.010 | 0.020 |",
+                      "| JPEG + codec-free | q=5,…,50 | 1.000 | 2.000 | 3.000 |",
+                      "| CodecSplat | λ=16,…,1024 | 1.000 | 2.000 | 3.000 |",
+                      "| CodecSplat RDO (slow) | λ=16,…,1024 | 1.000 | 50.000 | 3.000 |"]
+
+
+def test_plots_draw_a_line_per_curve_on_log_bytes_and_image_codecs_generate_at_the_receiver(tmp_path, monkeypatch):
+    figures = {}
+    monkeypatch.setattr(report, "save_figure", lambda fig, path: figures.update({path.name: fig}))
+    plot_rate_distortion(SUMMARY, tmp_path / "rd.png")
+    plot_distortion_vs_time(SUMMARY, tmp_path / "time.png")
+    psnr = figures["rd.png"].axes[0]
+    assert psnr.get_xscale() == "log" and psnr.get_xlabel() == "KiB per scene"
+    lines = {line.get_label(): line for line in psnr.get_lines()}
+    for method, kib in [(CODECSPLAT, [2000, 9000]), ("CodecSplat RDO (slow)", [1900, 8000]),
+                        ("WebP + codec-free", [4000, 9500]), ("JPEG + codec-free", [3300, 14000])]:
+        assert lines[method].get_linestyle() == "-" and list(lines[method].get_xdata()) == [k / 1024 for k in kib]
+    assert lines[f"{BACKBONE}→PLY+Deflate (16/8-bit)"].get_linestyle() == "None"  # one setting: a marker
+    assert lines[f"{COPY_NEAREST} (0 bytes)"].get_linestyle() == "--"
+    sender, receiver = figures["time.png"].axes
+    webp = {line.get_label(): line for line in sender.get_lines()}["WebP + codec-free"]
+    assert list(webp.get_xdata()) == [0.01, 0.01] and webp.get_linestyle() == "None"  # image encoding alone
+    webp = {line.get_label(): line for line in receiver.get_lines()}["WebP + codec-free"]
+    assert np.allclose(webp.get_xdata(), [1.02, 1.02])  # decoding + the network on the decoded photographs
+    slow = {line.get_label(): line for line in sender.get_lines()}["CodecSplat RDO (slow)"]
+    assert list(slow.get_xdata()) == [41.0, 61.0]
