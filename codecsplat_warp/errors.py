@@ -45,3 +45,12 @@ class RasterMemoryError(CodecSplatError, MemoryError):
 class MVSError(CodecSplatError, ValueError):
     """A scene cannot give multi-view stereo depth: fewer than 3 views, or a view without a usable source view
     (none overlaps it with a useful baseline). The message names the view."""
+
+
+class NoSamplesError(DataError):
+    """An evaluation finds no sample to score: every scene is unusable with its protocol, or its index selects
+    none. ``skipped`` lists the unusable scenes as ``{"scene": name, "reason": text}``."""
+
+    def __init__(self, message: str, skipped: list[dict] | None = None):
+        super().__init__(message)
+        self.skipped = list(skipped or [])
