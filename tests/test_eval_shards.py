@@ -1,6 +1,7 @@
 """Work over worker processes (``codecsplat_warp.eval.shards``): the workers' devices, the round-robin split,
 ``run_sharded`` on two CPU processes (results in shard order, equal to running in this process; a worker's error
-named by its shard, typed). The tasks are module-level so that the spawned workers can import them."""
+named by its shard, typed), and ``codecsplat eval --workers 2 --device cpu`` writing the results.json of a
+one-process run. The tasks are module-level so that the spawned workers can import them."""
 
 from __future__ import annotations
 
@@ -10,10 +11,15 @@ import os
 import pytest
 import torch
 
+from codecsplat_warp.cli import main
 from codecsplat_warp.errors import DataError, InputError, ShardError
 from codecsplat_warp.eval import shards
 from codecsplat_warp.eval.evaluate import EvalConfig
 from codecsplat_warp.eval.shards import report_progress, run_sharded, shard_devices, split_round_robin
+from codecsplat_warp.metrics import WEIGHTS_ENV
+from codecsplat_warp.model.pretrained import save_pretrained
+from conftest import tiny_coding_model
+from test_cli_commands import write_scene
 
 CPU = torch.device("cpu")
 
@@ -95,3 +101,48 @@ def test_a_run_split_another_way_is_not_resumed(tmp_path):
         shards._check_split(tmp_path, configs)
     shards._check_split(tmp_path, [EvalConfig(data="x", out=str(shard), scenes=("a", "c"))])
 
+
+TIMINGS = ("gen_s", "compress_s", "decompress_s")
+
+
+def _without(entry: dict, keys) -> dict:
+    return {k: v for k, v in entry.items() if k not in keys}
+
+
+def _close(a, b) -> bool:
+    """Whether ``a`` and ``b`` (JSON values) are equal, floats within 1e-5 relative (1e-6 absolute)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_close(a[k], b[k]) for k in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_close(x, y) for x, y in zip(a, b))
+    if isinstance(a, float) or isinstance(b, float):
+        return a == pytest.approx(b, rel=1e-5, abs=1e-6)
+    return a == b
+
+
+@pytest.mark.slow  # about 30 s on 2 CPU cores: three runs, two of them starting two worker processes
+def test_eval_over_two_cpu_workers_writes_what_one_process_writes(tmp_path, monkeypatch):
+    monkeypatch.delenv(WEIGHTS_ENV, raising=False)  # no LPIPS: shorter runs
+    save_pretrained(tiny_coding_model(0), tmp_path / "tiny.safetensors")
+    for name, seed, views in (("a", 1, 3), ("b", 2, 2), ("c", 3, 3)):  # b has too few views: skipped
+        write_scene(tmp_path / "scenes" / name, seed=seed, views=views)
+    command = ["eval", "--data", str(tmp_path / "scenes"), "--protocol", "scene", "--lambdas", "64", "--baselines",
+               "none", "--targets", "1", "--renders", "--device", "cpu", "--json", "--checkpoint",
+               str(tmp_path / "tiny.safetensors")]
+    assert main([*command, "-o", str(tmp_path / "one"), "--workers", "1"]) == 0
+    assert main([*command, "-o", str(tmp_path / "two"), "--workers", "2"]) == 0
+    one, two = (json.loads((tmp_path / out / "results.json").read_text()) for out in ("one", "two"))
+    assert list(two) == list(one) and two["plan"] == one["plan"] and two["scenes"] == ["a", "c"]
+    assert len(two["rows"]) == 2 * 3 and _close([_without(r, TIMINGS) for r in two["rows"]],
+                                                 [_without(r, TIMINGS) for r in one["rows"]])
+    assert _close([_without(s, TIMINGS) for s in two["summary"]], [_without(s, TIMINGS) for s in one["summary"]])
+    for key in ("device", "machine", "model_id", "lpips", "skipped", "samples_done", "depth_reference"):
+        assert two[key] == one[key], key
+    assert [s["scene"] for s in two["skipped"]] == ["b"]  # worker 1 (a, c and b dealt over two) had no usable scene
+    assert _without(two["config"], {"out"}) == _without(one["config"], {"out"})
+    assert two["tables"]["table1"] == one["tables"]["table1"] and two["tables"]["table3"] == one["tables"]["table3"]
+    assert one["tables"]["table1"] in (tmp_path / "two" / "tables.md").read_text()
+    assert os.listdir(tmp_path / "two" / "shards") == ["0"]
+    assert sorted(p.name for p in (tmp_path / "two" / "renders").iterdir()) == ["a-1.png", "c-2.png"]
+    assert main([*command, "-o", str(tmp_path / "two"), "--workers", "2"]) == 0  # every shard resumes: nothing to run
+    assert json.loads((tmp_path / "two" / "results.json").read_text())["rows"] == two["rows"]  # timings as measured
