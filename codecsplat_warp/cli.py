@@ -167,6 +167,11 @@ def build_parser() -> argparse.ArgumentParser:
                           "ground truth")
     evaluate.add_argument("--mvs-depth", help="folder of reference depth, DIR/<scene>/depth.json (codecsplat depth): "
                           "scores the encoder and decoder depth of the context views")
+    evaluate.add_argument("--workers", type=int, metavar="N",
+                          help="worker processes to deal the scenes over, on the GPUs in turn (--device cuda or "
+                          "auto; several per GPU are allowed) or on the CPU (--device cpu); each writes OUT/shards/K/, "
+                          "merged into OUT (default: one per visible GPU with --device cuda or auto, else 1: this "
+                          "process alone)")
     evaluate.add_argument("-o", "--out", default="codecsplat-eval", help="output folder (default ./codecsplat-eval)")
 
     _depth_parser(sub)
@@ -244,13 +249,20 @@ def _device(args):
     return resolve_device(args.device)
 
 
-def _load_model(args, device):
+def _checkpoint(args) -> str | None:
+    """``--checkpoint``, None for the model shipped with the package (UsageError when this installation has none)."""
     from .model import pretrained
 
     if args.checkpoint is None and not pretrained.DEFAULT_CHECKPOINT.is_file():
         raise UsageError(f"no model is shipped with this installation ({pretrained.DEFAULT_CHECKPOINT} is missing): "
                          "pass --checkpoint PATH (a file written by save_pretrained)")
-    return pretrained.load_pretrained(args.checkpoint, device)
+    return args.checkpoint
+
+
+def _load_model(args, device):
+    from .model import pretrained
+
+    return pretrained.load_pretrained(_checkpoint(args), device)
 
 
 def _read_bitstream(path: str) -> bytes:
@@ -472,7 +484,8 @@ def _cmd_render(args) -> int:
 
 
 def _cmd_eval(args) -> int:
-    from .eval.evaluate import BASELINE_NAMES, EvalConfig, evaluate
+    from .eval.evaluate import BASELINE_NAMES, EvalConfig
+    from .eval.shards import evaluate_sharded, shard_devices
 
     baselines = () if args.baselines.strip().lower() == "none" else tuple(
         b.strip() for b in args.baselines.split(",") if b.strip())
@@ -480,7 +493,8 @@ def _cmd_eval(args) -> int:
     if unknown:
         raise UsageError(f"--baselines: unknown {', '.join(unknown)}; choose from {', '.join(BASELINE_NAMES)} or none")
     device = _device(args)
-    model = _load_model(args, device)
+    workers = shard_devices(args.device, args.workers)
+    checkpoint = _checkpoint(args)
     config = EvalConfig(data=args.data, out=args.out, protocol=args.protocol,
                         lambdas=tuple(_number_list(float, args.lambdas, "--lambdas")), baselines=baselines,
                         samples_per_scene=args.samples_per_scene, target_views=args.targets,
@@ -493,7 +507,7 @@ def _cmd_eval(args) -> int:
                         jpeg_qualities=tuple(_number_list(int, args.jpeg_qualities, "--jpeg-qualities")),
                         rdo_presets=tuple(name.strip() for name in (args.rdo_presets or "").split(",") if name.strip()),
                         rdo_steps=tuple(_number_list(int, args.rdo_steps or "", "--rdo-steps")), rdo_seed=args.rdo_seed)
-    result = evaluate(model, config, device)
+    result = evaluate_sharded(config, checkpoint, device, workers, threads=args.threads)
     lines = [f"{len(result['scenes'])} scene(s), {args.protocol} protocol, {result['machine']}",
              "", "Table 1", result["tables"]["table1"], "", "Table 2 (seconds)", result["tables"]["table2"], "",
              f"LPIPS: {result['lpips']}"]

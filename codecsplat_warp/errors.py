@@ -45,3 +45,19 @@ class RasterMemoryError(CodecSplatError, MemoryError):
 class MVSError(CodecSplatError, ValueError):
     """A scene cannot give multi-view stereo depth: fewer than 3 views, or a view without a usable source view
     (none overlaps it with a useful baseline). The message names the view."""
+
+
+class ShardError(RuntimeError):
+    """A worker process of :func:`codecsplat_warp.eval.shards.run_sharded` failed other than with one of this
+    package's errors (which keep their type): an exception that is not a :class:`CodecSplatError` (a bug: the
+    message holds the worker's traceback), a crash, or a worker killed from outside. The message names the shard
+    and its device. Deliberately not a :class:`CodecSplatError`: the command line reports it as an internal error."""
+
+
+class NoSamplesError(DataError):
+    """An evaluation finds no sample to score: every scene is unusable with its protocol, or its index selects
+    none. ``skipped`` lists the unusable scenes as ``{"scene": name, "reason": text}``."""
+
+    def __init__(self, message: str, skipped: list[dict] | None = None):
+        super().__init__(message)
+        self.skipped = list(skipped or [])

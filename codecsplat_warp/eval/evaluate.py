@@ -63,7 +63,7 @@ from tqdm.auto import tqdm
 from ..baselines import FeatureDeflate, ImageCodec, PlyDeflate, PngCompression
 from ..choices import BASELINE_NAMES, IMAGE_CODEC_QUALITIES, OUTPUT_BASELINES, PAPER_LAMBDAS
 from ..codec import bytes_report, check_lambda
-from ..errors import DataError, InputError
+from ..errors import DataError, InputError, NoSamplesError
 from ..export.files import write_json, write_text
 from ..export.ply import decode_ply, encode_ply
 from ..export.video import to_uint8_frames
@@ -377,7 +377,8 @@ GEOMETRY_KEYS = {"self_render", "depth"}
 """Row keys of the self-render and depth measures, which results.json files written before them lack."""
 
 
-def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
+def evaluate(model, config: EvalConfig, device: torch.device,
+             on_sample: Callable[[int, int], None] | None = None) -> dict:
     """Evaluate ``model`` on every sample of ``config.data``; write results.json, tables.md and the plots.
 
     Scenes with too few views for the protocol are skipped and listed under ``skipped``. results.json is
@@ -389,6 +390,9 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
     A results.json of an earlier version, whose rows lack the self-render and depth measures, is not resumed:
     its samples are measured again, and ``notes`` says so.
 
+    ``on_sample(done, total)``, when given, is called with the counts of finished and of all samples once the samples
+    of an earlier run are known, and after every sample (e.g. to report progress to another process).
+
     Returns:
         {"config", "device", "machine", "model_id", "scenes", "skipped", "lpips", "files", "plan", "rdo" (each RDO
         setting's method, preset, steps and seed), "samples_done", "samples_total", "summary", "rows",
@@ -398,34 +402,24 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
         InputError: unknown protocol or baseline, empty lambda list, bad size, a chunk folder without an index
             or with the ``scene`` protocol; an image baseline without qualities, a bad or repeated quality; an
             unknown, repeated or step-less RDO preset or step count.
-        DataError: no usable scene; an index naming scenes or frames the data does not have; results.json of
-            another evaluation in ``out`` (with ``resume``); a ``mvs_depth`` that is not a folder, or a corrupt
-            ``depth.json`` or depth PNG in it.
+        DataError: no usable scene (:class:`~codecsplat_warp.errors.NoSamplesError`); an index naming scenes or
+            frames the data does not have; results.json of another evaluation in ``out`` (with ``resume``); a
+            ``mvs_depth`` that is not a folder, or a corrupt ``depth.json`` or depth PNG in it.
     """
-    protocol = _protocol(config)
-    unknown = sorted(set(config.baselines) - set(BASELINE_NAMES))
-    if unknown:
-        raise InputError(f"unknown baseline(s) {', '.join(unknown)}; choose from {', '.join(BASELINE_NAMES)}")
-    if not config.lambdas:
-        raise InputError("give at least one lambda")
-    for lam in config.lambdas:
-        check_lambda(lam)
-    png = PngCompression(sh_clusters=config.png_sh_clusters, kmeans_iterations=config.kmeans_iterations)
+    protocol, png = check_config(config)
     image_codecs = _image_codecs(config)
     rdo = _rdo_settings(config)
     reference = ReferenceDepth(config.mvs_depth) if config.mvs_depth else None
     metrics = ImageMetrics(config.lpips_weights, device)
     plan = _plan(config, protocol, model)
     if not plan.keys:
-        raise DataError(f"no scene under {config.data} is usable with the {protocol.name} protocol: "
-                        + ("; ".join(f"{s['scene']}: {s['reason']}" for s in plan.skipped) or "the index selects none"))
+        raise no_samples_error(config, protocol, plan.skipped)
     evaluator = Evaluator(model, metrics, config.lambdas, [b for b in config.baselines if b in OUTPUT_BASELINES],
                           device, png, keep_renders=config.renders, reference=reference, image_codecs=image_codecs,
                           rdo=rdo)
     out = pathlib.Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
-    files = {"json": out / "results.json", "markdown": out / "tables.md", "rate_distortion": out / "rate_distortion.png",
-             "distortion_vs_time": out / "distortion_vs_time.png"}
+    files = result_files(out)
     header = {
         "config": {**asdict(config), "protocol": asdict(protocol)}, "device": str(device),
         "machine": machine_name(device), "model_id": model_id(model), "scenes": sorted({k[0] for k in plan.keys}),
@@ -437,6 +431,8 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
     for note in notes:
         tqdm.write(note, file=sys.stderr)
     total = len(plan.keys)
+    if on_sample is not None:
+        on_sample(start, total)
     with tqdm(total=(total - start) * evaluator.steps_per_sample, desc="eval", unit="method",
               disable=None if config.progress else True) as progress:  # None: only on a terminal
         for done, sample in enumerate(plan.load(start), start + 1):
@@ -450,11 +446,63 @@ def evaluate(model, config: EvalConfig, device: torch.device) -> dict:
             # after every sample, so an interrupted run keeps what it measured
             write_json(files["json"], {**header, "samples_done": done, "samples_total": total,
                                        "summary": summarize(rows), "rows": [asdict(r) for r in rows]})
+            if on_sample is not None:
+                on_sample(done, total)
+    return write_results(header, rows, config.mvs_depth, notes)
+
+
+def check_config(config: EvalConfig) -> tuple[Protocol, PngCompression]:
+    """The protocol of ``config`` (its target-view count and size applied) and its PNG baseline, once every option
+    that needs no data is checked.
+
+    Raises:
+        InputError: unknown protocol or baseline, empty lambda list, a lambda outside [16, 1024], bad size,
+            target-view or sample count, bad PNG baseline settings, bad image-codec qualities or RDO settings.
+    """
+    protocol = _protocol(config)
+    unknown = sorted(set(config.baselines) - set(BASELINE_NAMES))
+    if unknown:
+        raise InputError(f"unknown baseline(s) {', '.join(unknown)}; choose from {', '.join(BASELINE_NAMES)}")
+    if not config.lambdas:
+        raise InputError("give at least one lambda")
+    for lam in config.lambdas:
+        check_lambda(lam)
+    _image_codecs(config)
+    _rdo_settings(config)
+    return protocol, PngCompression(sh_clusters=config.png_sh_clusters, kmeans_iterations=config.kmeans_iterations)
+
+
+def no_samples_error(config: EvalConfig, protocol: Protocol, skipped: list[dict]) -> NoSamplesError:
+    """The error of an evaluation without a sample: every scene ``skipped`` (``{"scene", "reason"}``), or none
+    selected by the index."""
+    reasons = "; ".join(f"{s['scene']}: {s['reason']}" for s in skipped) or "the index selects none"
+    return NoSamplesError(f"no scene under {config.data} is usable with the {protocol.name} protocol: {reasons}",
+                          skipped)
+
+
+def result_files(out: pathlib.Path) -> dict[str, pathlib.Path]:
+    """The files an evaluation writes in its output folder ``out``, by role (json, markdown, rate_distortion,
+    distortion_vs_time)."""
+    return {"json": out / "results.json", "markdown": out / "tables.md", "rate_distortion": out / "rate_distortion.png",
+            "distortion_vs_time": out / "distortion_vs_time.png"}
+
+
+def write_results(header: dict, rows: list[Row], mvs_depth: str | None, notes: list[str]) -> dict:
+    """Finish an evaluation: ``header`` (config, device, machine, model_id, scenes, skipped, lpips, files and plan,
+    as :func:`evaluate` writes them) with every sample's ``rows`` in the plan's order, their summary, the reference
+    depth they cover (``mvs_depth``: the ``--mvs-depth`` folder or None), ``notes`` and the tables, written to the
+    files ``header["files"]`` names (results.json, tables.md, the rate-distortion and distortion-vs-time plots).
+
+    Returns:
+        the result dict :func:`evaluate` returns.
+    """
     summary = summarize(rows)
+    total = len(header["plan"])
     result = {**header, "samples_done": total, "samples_total": total, "summary": summary,
-              "rows": [asdict(r) for r in rows], "depth_reference": _depth_reference(config.mvs_depth, rows, plan.keys),
+              "rows": [asdict(r) for r in rows], "depth_reference": _depth_reference(mvs_depth, rows, header["plan"]),
               "notes": notes,
               "tables": {"table1": table1(summary), "table2": table2(summary), "table3": table3(summary)}}
+    files = {role: pathlib.Path(path) for role, path in header["files"].items()}
     write_json(files["json"], result)
     write_text(files["markdown"], markdown_report(result))
     plot_rate_distortion(summary, files["rate_distortion"])
@@ -521,6 +569,21 @@ def _plan(config: EvalConfig, protocol: Protocol, model) -> SamplePlan:
         except DataError as exc:
             skipped.append({"scene": path.name, "reason": str(exc)})
     return eager_plan(samples, skipped)
+
+
+def plan_scenes(config: EvalConfig) -> list[str]:
+    """The scenes of ``config.data`` that an evaluation visits, in its order, without decoding an image: the scene
+    keys an index selects (a chunk folder, or ``index``), else the scene folders (those of ``scenes`` when given),
+    those the protocol cannot use included (the evaluation skips them).
+
+    Raises:
+        InputError, DataError: as :func:`evaluate`, for bad options or data.
+    """
+    protocol, _ = check_config(config)
+    if is_chunk_folder(config.data) or config.index:
+        return list(dict.fromkeys(key[0] for key in _plan(config, protocol, None).keys))
+    paths = select_scenes(find_scenes(config.data), tuple(sorted(config.scenes)))
+    return list(dict.fromkeys(path.name for path in paths))
 
 
 def _depth_reference(folder: str | None, rows: list[Row], keys: list) -> dict:
