@@ -12,8 +12,9 @@ Pure torch: no Warp here (the Warp runtime is :mod:`codecsplat_warp.device`).
 
 from __future__ import annotations
 
+import contextlib
 import os
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import torch
 
@@ -34,6 +35,18 @@ def set_validation(enabled: bool) -> None:
 def validation_enabled() -> bool:
     """Whether ops check their inputs for NaN/Inf (each check costs one device sync)."""
     return _validate
+
+
+@contextlib.contextmanager
+def validation(enabled: bool) -> Iterator[None]:
+    """Inside the block, ops check their inputs for NaN/Inf only if ``enabled`` (:func:`set_validation`); the
+    setting before it comes back afterwards. Loops over inputs that one check already covered turn it off."""
+    saved = _validate
+    set_validation(enabled)
+    try:
+        yield
+    finally:
+        set_validation(saved)
 
 def common_device(**tensors: torch.Tensor | None) -> torch.device:
     """The device shared by all given tensors (None entries are skipped).

@@ -10,7 +10,7 @@ from codecsplat_warp.cameras import Cameras
 from codecsplat_warp.errors import DeviceMismatchError
 from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.nn.config import get_preset
-from codecsplat_warp.model.codecsplat import render_depth_range
+from codecsplat_warp.model.culling import render_depth_range
 from codecsplat_warp.gaussians import Gaussians
 from codecsplat_warp.model.prune import (OPACITY_THRESHOLD, PruneReport, depth_rounding_bound, prune_gaussians,
                                          prune_transparent)

@@ -81,7 +81,7 @@ def test_pinned_hash_is_unchanged(pinned_run, name):
 
 @pytest.mark.parametrize("path", ["codec_free", "decoded"])
 def test_renders_match_the_dense_reference(pinned_run, path):
-    from codecsplat_warp.model.codecsplat import render_depth_range
+    from codecsplat_warp.model.culling import render_depth_range
     from codecsplat_warp.reference.raster import rasterize_dense
 
     render, gaussians = pinned_run["renders"][path]

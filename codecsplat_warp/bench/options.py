@@ -144,7 +144,7 @@ def raster_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 RDO_PROFILE_PARTS = ("codec", "depth_head", "refine_post", "reprojection", "gs_head", "map_to_world", "rasterize",
-                     "convolutions", "loss", "optimiser", "other")
+                     "convolutions", "loss", "perceptual", "optimiser", "other")
 """The parts of ``bench rdo --profile``'s step: forward ranges of the model (``convolutions``: their backward
 alone), and the backward of each (``other``: the backward nodes of none of them)."""
 
@@ -170,6 +170,8 @@ def rdo_arguments(parser: argparse.ArgumentParser) -> None:
                         "(default: none)")
     parser.add_argument("--pictures", default=None, metavar="DIR", help="write each sample's targets by every step "
                         "count to DIR/<scene>-lambda<L>.png (default: none)")
+    parser.add_argument("--trajectory", action="store_true", help="also score the targets at every check of each "
+                        "run (stored per row; the checks' scoring then counts in the encode seconds)")
     parser.add_argument("--profile", action="store_true", help="profile one step instead (first sample, first lambda)")
     parser.add_argument("--profile-steps", type=int, default=20,
                         help="unprofiled steps whose median wall time --profile reports (default %(default)s)")

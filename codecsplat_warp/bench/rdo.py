@@ -37,6 +37,7 @@ from ..eval.protocols import (PROTOCOLS, Sample, eager_plan, find_scenes, folder
 from ..eval.report import plot_comparison, pyplot, save_figure
 from ..export.video import to_uint8_frames
 from ..measure import format_table, machine_name, synchronize
+from ..metrics import LPIPS
 from ..metrics.image import ImageMetrics
 from ..model import pretrained
 from ..model.rdo import RDOConfig, optimise_latents, rdo_config, rdo_step, rdo_target
@@ -57,14 +58,17 @@ def run(args: argparse.Namespace) -> dict:
     samples = _samples(args, model)
     result = {"device": str(device), "machine": machine_name(device), "protocol": args.protocol,
               "settings": settings, "lambdas": lambdas, "steps": steps}
+    perceptual = LPIPS("vgg", args.lpips_weights).to(device) if settings.get("perceptual_weight", 0) > 0 else None
     if args.profile:
-        result["profile"] = profile_step(model, samples[0], lambdas[0], settings, args.profile_steps, device)
+        result["profile"] = profile_step(model, samples[0], lambdas[0], settings, args.profile_steps, device,
+                                         perceptual)
         print(format_profile(result["profile"]))
         return result
     metrics = ImageMetrics(args.lpips_weights, device)
     rows = []
     for sample in samples:
-        rows += bench_sample(model, sample.to(device), lambdas, steps, settings, metrics, device, args.pictures)
+        rows += bench_sample(model, sample.to(device), lambdas, steps, settings, metrics, device, args.pictures,
+                             perceptual, args.trajectory)
     result.update(rows=rows, summary=summarize(rows), lpips=metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1")
     print(format_summary(result["summary"], result["machine"]))
     if args.plot:
@@ -118,8 +122,10 @@ def _samples(args: argparse.Namespace, model) -> list[Sample]:
 
 
 def bench_sample(model, sample: Sample, lambdas: list[float], steps: list[int], settings: dict,
-                 metrics: ImageMetrics, device: torch.device, pictures: str | None) -> list[dict]:
-    """Rows of one sample: the references (copy-nearest, codec-free) and one per (lambda, steps)."""
+                 metrics: ImageMetrics, device: torch.device, pictures: str | None,
+                 perceptual: torch.nn.Module | None = None, trajectory: bool = False) -> list[dict]:
+    """Rows of one sample: the references (copy-nearest, codec-free) and one per (lambda, steps); with
+    ``trajectory``, each RDO row also scores the targets at every check of the run (``row["trajectory"]``)."""
     def score(rgb: torch.Tensor) -> dict:
         return {k: statistics.fmean(v) for k, v in metrics(rgb, sample.target_images).items()}
 
@@ -130,15 +136,17 @@ def bench_sample(model, sample: Sample, lambdas: list[float], steps: list[int], 
                             sample.target_cameras)["rgb"]
     rows = [{**base, "method": "copy nearest", **score(copy)}, {**base, "method": "codec-free", **score(free)}]
     model.encode_scene(sample.context_images, sample.context_cameras, lambdas[0], steps=min(steps[-1], 2),
-                       rdo_settings=settings)  # warm-up: kernels, allocator
+                       rdo_settings=settings, perceptual=perceptual)  # warm-up: kernels, allocator
     for lam in lambdas:
         renders, titles = [to_uint8_frames(sample.target_images), to_uint8_frames(copy), to_uint8_frames(free)], \
             ["truth", "copy nearest", "codec-free"]
         for count in steps:
+            checks: list[dict] = []
+            hook = _trajectory_hook(model, sample, metrics, checks) if trajectory else None
             synchronize(device)
             start = time.perf_counter()
             encoded = model.encode_scene(sample.context_images, sample.context_cameras, lam, steps=count,
-                                         rdo_settings=settings)
+                                         rdo_settings=settings, perceptual=perceptual, on_check=hook)
             synchronize(device)
             seconds = time.perf_counter() - start
             with torch.no_grad():
@@ -151,6 +159,8 @@ def bench_sample(model, sample: Sample, lambdas: list[float], steps: list[int], 
                    "bytes": len(encoded.data), "context_psnr": context_psnr, **score(rgb)}
             if encoded.rdo is not None:
                 row["rdo"] = encoded.rdo.to_dict()
+            if checks:
+                row["trajectory"] = checks
             rows.append(row)
             print(f"{sample.scene} λ={lam:g} steps={count}: {seconds:.2f} s, {len(encoded.data)} B, "
                   f"target {row['psnr']:.2f} dB, context {context_psnr:.2f} dB", file=sys.stderr, flush=True)
@@ -160,6 +170,30 @@ def bench_sample(model, sample: Sample, lambdas: list[float], steps: list[int], 
             path = pathlib.Path(pictures) / f"{sample.scene}-lambda{lam:g}.png"
             plot_comparison(renders, titles, path)
     return rows
+
+
+def _trajectory_hook(model, sample: Sample, metrics: ImageMetrics, checks: list[dict]):
+    """An ``on_check`` hook that scores the targets decoded from every check's coding, and the cross-view PSNR
+    (each context view rendered from the other views' Gaussians alone, black behind them): appends to ``checks``."""
+    cameras, images = sample.context_cameras, sample.context_images
+
+    @torch.no_grad()
+    def hook(check, compressed) -> None:
+        gaussians = model.decode_feature(compressed.feature, cameras)[2]
+        rgb = model.render(gaussians, sample.target_cameras)["rgb"]
+        scores = {k: statistics.fmean(v) for k, v in metrics(rgb, sample.target_images).items()}
+        pieces = gaussians.split(cameras.num_views)
+        cross = []
+        for v in range(cameras.num_views):
+            others = [pieces[u] for u in range(cameras.num_views) if u != v]
+            merged = type(gaussians)(**{k: torch.cat([getattr(p, k) for p in others]) for k in
+                                        ("means", "quats", "scales", "opacities", "sh")})
+            own = model.render(merged, cameras.select([v]))["rgb"]
+            cross.append(float((own.clamp(0, 1) - images[v:v + 1]).square().mean()))
+        checks.append({**vars(check), **{f"target_{k}": v for k, v in scores.items()},
+                       "cross_psnr": -10 * math.log10(max(statistics.fmean(cross), 1e-12))})
+
+    return hook
 
 
 def summarize(rows: list[dict]) -> list[dict]:
@@ -215,7 +249,8 @@ def plot_curve(summary: list[dict], path: pathlib.Path) -> None:
 
 # --------------------------------------------------------------------------------------------------
 # Profile of one step
-def profile_step(model, sample: Sample, lam: float, settings: dict, steps: int, device: torch.device) -> dict:
+def profile_step(model, sample: Sample, lam: float, settings: dict, steps: int, device: torch.device,
+                 perceptual: torch.nn.Module | None = None) -> dict:
     """Median wall ms of ``steps`` optimisation steps, then one profiled step broken into
     :data:`RDO_PROFILE_PARTS` (ms of CPU time on the CPU, of GPU kernels on CUDA)."""
     from torch.profiler import ProfilerActivity, profile
@@ -225,7 +260,7 @@ def profile_step(model, sample: Sample, lam: float, settings: dict, steps: int, 
     with torch.no_grad():
         start = model.codec.compress(model(sample.context_images, sample.context_cameras)["F_c"], lam,
                                      reconstruct=True)
-    target = rdo_target(model, sample.context_images, sample.context_cameras, lam, start, config)
+    target = rdo_target(model, sample.context_images, sample.context_cameras, lam, start, config, perceptual)
     latents = [z.detach().clone().requires_grad_(True) for z in start.latents]
     optimiser = torch.optim.Adam(latents, lr=config.learning_rate)
     frozen = [p.requires_grad for p in model.parameters()]
@@ -267,13 +302,21 @@ def _step_parts(events, device: torch.device) -> dict[str, dict[str, float]]:
     """{part: {"forward": ms, "backward": ms}} from a profiled step's events: forward by the record_function
     ranges of the model (nested ranges are subtracted from their parents), backward by autograd node."""
     def ms(event) -> float:
-        return (event.device_time_total if device.type == "cuda" else event.cpu_time_total) / 1e3
+        if device.type != "cuda":
+            return event.cpu_time_total / 1e3
+        # the kernels of the ops below the event (a range's own device span would count the gaps between them)
+        stack, total = list(event.cpu_children), event.self_device_time_total
+        while stack:
+            child = stack.pop()
+            total += child.self_device_time_total
+            stack.extend(child.cpu_children)
+        return total / 1e3
 
     parts = {name: {"forward": 0.0, "backward": 0.0} for name in RDO_PROFILE_PARTS}
     for event in events:
         name = event.name
         if name in ("codec", "depth_head", "refine_post", "gs_head", "map_to_world", "rasterize", "loss",
-                    "optimiser"):
+                    "perceptual", "optimiser"):
             parts[name]["forward"] += ms(event)
         elif name in ("_ReprojectAverage",):
             parts["reprojection"]["forward"] += ms(event)

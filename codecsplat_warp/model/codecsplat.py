@@ -45,15 +45,10 @@ from ..nn.mono import build_mono_backbone
 from ..ops.raster import rasterize
 from .feathead import FeatHead
 from .heads import DepthHead, GaussianHead, map_to_world
+from .culling import render_depth_range
 from .mvenc import MonoBackbone, MVEnc, context_neighbours
 from .rdo import optimise_latents, rdo_config
 from .refine import Refiner
-
-RENDER_NEAR_FRACTION = 0.5
-"""Gaussians closer to a target camera than this fraction of its near bound are culled by the renderer."""
-
-RENDER_FAR_FACTOR = 2.0
-"""... and those farther than this multiple of its far bound."""
 
 DECODE_PRECISIONS = ("float32", "bfloat16")
 """Precisions :meth:`CodecSplat.decode_scene` runs its network part in; float32 is the default."""
@@ -166,7 +161,8 @@ class CodecSplat(nn.Module):
     @torch.no_grad()
     def encode_scene(self, images: torch.Tensor, cameras: Cameras, lam: float, timer: Timer = no_timer,
                      preset: str = "fast", steps: int | None = None, time_budget: float | None = None,
-                     seed: int = 0, progress: bool = False, rdo_settings: dict | None = None) -> EncodedScene:
+                     seed: int = 0, progress: bool = False, rdo_settings: dict | None = None,
+                     perceptual: nn.Module | None = None, on_check=None) -> EncodedScene:
         """Encoder: context views -> scene bitstream (Eq. 8) and the coded symbols.
 
         MVEnc, FeatHead and R_pre give F_c (bf16 autocast on CUDA), the codec quantises and range codes its
@@ -187,6 +183,8 @@ class CodecSplat(nn.Module):
             progress: show the optimisation's progress bar (on a terminal).
             rdo_settings: other fields of :class:`.rdo.RDOConfig` (learning rate, loss weights, precision, ...)
                 for experiments; None keeps the tuned defaults.
+            perceptual: the perceptual network (LPIPS) of a perceptual term (``perceptual_weight`` > 0).
+            on_check: called with every real coding the optimisation measures (:func:`.rdo.optimise_latents`).
         Raises:
             InputError / DeviceMismatchError: as :meth:`forward`; InputError if the model has no codec, for an
                 unknown preset, steps < 0 or a time budget <= 0.
@@ -204,7 +202,7 @@ class CodecSplat(nn.Module):
         if config.optimises:
             with timer("rdo"), torch.enable_grad():
                 result = optimise_latents(self, images.float(), cameras.to(dtype=torch.float32), lam, compressed,
-                                          config, progress)
+                                          config, progress, perceptual, on_check)
             compressed = result.compressed
         with timer("bitstream"):
             data = pack_bitstream(model_id(self), lam, cameras.to(dtype=self._dtype()), compressed.streams)
@@ -265,8 +263,10 @@ class CodecSplat(nn.Module):
         return self.decode_scene(data, device).gaussians
 
     def render(self, gaussians: Gaussians, cameras: Cameras, background: torch.Tensor | None = None,
-               render_depth: bool = False) -> dict:
-        """Rasterize ``gaussians`` into B target ``cameras`` (float32, autocast off).
+               render_depth: bool = False, depth_range: tuple[float, float] | None = None) -> dict:
+        """Rasterize ``gaussians`` into B target ``cameras`` (float32, autocast off), culling outside
+        ``depth_range`` (default :func:`render_depth_range` of the cameras, which reads their bounds on the host:
+        loops that render into the same cameras pass it once).
 
         Returns:
             dict with ``rgb`` [B,3,H,W], ``alpha`` [B,H,W], ``depth`` [B,H,W] (None unless ``render_depth``)
@@ -274,7 +274,7 @@ class CodecSplat(nn.Module):
         """
         common_device(means=gaussians.means, K=cameras.K)
         cams = cameras.to(dtype=torch.float32)
-        near, far = render_depth_range(cams)
+        near, far = depth_range or render_depth_range(cams)
         with record_function("rasterize"), torch.autocast(gaussians.means.device.type, enabled=False):
             rgb, depth, alpha, meta = rasterize(
                 gaussians.means.float(), gaussians.quats.float(), gaussians.scales.float(),
@@ -363,13 +363,6 @@ def weights_digest(model: torch.nn.Module) -> str:
 def model_id(model: torch.nn.Module) -> str:
     """16 hex digits naming the decoder: hash of :func:`weights_digest` and the entropy coder's tables."""
     return hashlib.sha256((weights_digest(model) + entropy_model_digest()).encode()).hexdigest()[:16]
-
-
-def render_depth_range(cameras: Cameras) -> tuple[float, float]:
-    """(near, far) camera depth range :meth:`CodecSplat.render` culls with for target ``cameras``:
-    :data:`RENDER_NEAR_FRACTION` x their smallest near and :data:`RENDER_FAR_FACTOR` x their largest far
-    (world units). The range of any subset of the cameras lies inside it."""
-    return float(cameras.near.min()) * RENDER_NEAR_FRACTION, float(cameras.far.max()) * RENDER_FAR_FACTOR
 
 
 def _same_device(a: torch.device, b: torch.device) -> bool:

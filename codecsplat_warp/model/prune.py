@@ -36,7 +36,7 @@ from ..cameras import Cameras
 from ..gaussians import Gaussians
 from ..kernels.raster_row import ALPHA_THRESHOLD
 from ..ops.raster import project_gaussians
-from .codecsplat import render_depth_range
+from .culling import render_depth_range
 
 OPACITY_THRESHOLD = ALPHA_THRESHOLD
 """Gaussians with an opacity below this (1/255) contribute nothing visible: the rasterizer skips them."""
@@ -86,7 +86,7 @@ def prune_gaussians(gaussians: Gaussians, cameras: Cameras | None = None,
         cameras: the V target cameras the result will be rendered into (any subsets, any batching), on the
             Gaussians' device; None prunes by opacity only.
         depth_range: (near, far) the renderer culls camera depth with; None uses
-            :func:`~codecsplat_warp.model.codecsplat.render_depth_range` of ``cameras`` (what
+            :func:`~codecsplat_warp.model.culling.render_depth_range` of ``cameras`` (what
             :meth:`CodecSplat.render` uses, also for any subset of the cameras).
 
     Returns:

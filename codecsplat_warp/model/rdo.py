@@ -37,16 +37,19 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
+from typing import Callable
 
 import torch
 from torch.nn import functional as F
 from torch.profiler import record_function
 
 from ..cameras import Cameras
+from ..checks import validation
 from ..codec.latent import LAMBDA_MAX, CompressedLatents, check_lambda
 from ..errors import InputError
 from ..gaussians import Gaussians
 from ..nn.config import FEATURE_STRIDE
+from .culling import render_depth_range
 from .mvenc import context_neighbours
 
 LATENT_LIMIT = 4096.0
@@ -72,6 +75,10 @@ class RDOConfig:
         rate_weight: beta, the weight of the rate in bits per context pixel (the shipped model's stage-2 value).
         cross_view_weight: weight of the cross-view term (0: off; needs at least 2 views).
         depth_weight: weight of |S - S_amortised|_1 (0: off).
+        perceptual_weight: weight of a perceptual distance (LPIPS) of the context renders (0: off; needs the
+            ``perceptual`` network, see :func:`rdo_target`).
+        anchor_weight: weight of the mean squared change of the latents from the amortised ones, in quantisation
+            steps squared (0: off).
         check_every: steps between two real codings of the latents (the best measured is kept); 0 codes only the
             amortised latents and the last ones.
         seed: seed of the training quantiser's noise.
@@ -86,6 +93,8 @@ class RDOConfig:
     rate_weight: float = 1.3e-3
     cross_view_weight: float = 0.0
     depth_weight: float = 0.0
+    perceptual_weight: float = 0.0
+    anchor_weight: float = 0.0
     check_every: int = 100
     seed: int = 0
     precision: str = "float32"
@@ -103,7 +112,8 @@ class RDOConfig:
             if not (math.isfinite(value) and value > 0):
                 raise InputError(f"RDOConfig.{name} must be > 0, got {value!r}")
         weights = {"rate_weight": self.rate_weight, "cross_view_weight": self.cross_view_weight,
-                   "depth_weight": self.depth_weight}
+                   "depth_weight": self.depth_weight, "perceptual_weight": self.perceptual_weight,
+                   "anchor_weight": self.anchor_weight}
         for name, value in weights.items():
             if not (math.isfinite(value) and value >= 0):
                 raise InputError(f"RDOConfig.{name} must be >= 0, got {value!r}")
@@ -180,21 +190,37 @@ class RDOResult:
 @dataclass
 class RDOTarget:
     """The fixed inputs of a run: context ``images`` [V,3,H,W], ``cameras``, ``lam``, the decoder's
-    ``neighbours`` [V,M] and the amortised decoder's normalised inverse depth ``s_start`` [V,H,W]."""
+    ``neighbours`` [V,M], the renderer's ``depth_range`` (near, far), the amortised ``latents`` and decoder's normalised
+    inverse depth ``s_start`` [V,H,W] (None when no term needs it), and the ``perceptual`` network with the context
+    images' features ``perceptual_target`` (None without a perceptual term)."""
 
     images: torch.Tensor
     cameras: Cameras
     lam: float
     neighbours: torch.Tensor
+    depth_range: tuple[float, float]
+    latents: list[torch.Tensor]
     s_start: torch.Tensor | None
+    perceptual: torch.nn.Module | None = None
+    perceptual_target: list[torch.Tensor] | None = None
 
 
 @torch.no_grad()
 def rdo_target(model, images: torch.Tensor, cameras: Cameras, lam: float, start: CompressedLatents,
-               config: RDOConfig) -> RDOTarget:
-    """The fixed inputs of a run from the context views and the amortised coding ``start`` (with its feature)."""
+               config: RDOConfig, perceptual: torch.nn.Module | None = None) -> RDOTarget:
+    """The fixed inputs of a run from the context views and the amortised coding ``start`` (with its feature).
+
+    ``perceptual``: a network with LPIPS' ``unit_features(images)`` and ``distance(x_units, y_units)`` (e.g.
+    :class:`codecsplat_warp.metrics.LPIPS`), needed when ``config.perceptual_weight`` > 0 (InputError otherwise).
+    """
+    if config.perceptual_weight > 0 and perceptual is None:
+        raise InputError("RDO with a perceptual weight needs the perceptual network (e.g. codecsplat_warp.metrics."
+                         "LPIPS('vgg')): pass perceptual=")
     s_start = model.depth_head(start.feature.float(), cameras)[0] if config.depth_weight > 0 else None
-    return RDOTarget(images, cameras, lam, context_neighbours(cameras, model.config.neighbours), s_start)
+    target_units = perceptual.unit_features(images) if config.perceptual_weight > 0 else None
+    return RDOTarget(images, cameras, lam, context_neighbours(cameras, model.config.neighbours),
+                     render_depth_range(cameras), [z.detach() for z in start.latents], s_start,
+                     perceptual if target_units is not None else None, target_units)
 
 
 def rdo_loss(model, latents: list[torch.Tensor], target: RDOTarget, config: RDOConfig,
@@ -218,21 +244,31 @@ def rdo_loss(model, latents: list[torch.Tensor], target: RDOTarget, config: RDOC
         else:
             feature, bits = compressed.feature, compressed.bits.sum().to(images.device, torch.float32)
         s, _, gaussians = model.decode_feature(feature, cameras, target.neighbours)
-    rgb = model.render(gaussians, cameras)["rgb"]
+    rgb = model.render(gaussians, cameras, depth_range=target.depth_range)["rgb"]
     with record_function("loss"):
         parts = {"mse": F.mse_loss(rgb, images), "bpp": bits.float() / images[:, 0].numel()}
     distortion = parts["mse"]
+    if config.perceptual_weight > 0:
+        with record_function("perceptual"):
+            units = target.perceptual.unit_features(rgb.clamp(0.0, 1.0))
+            parts["perceptual"] = target.perceptual.distance(units, target.perceptual_target).mean()
+        distortion = distortion + config.perceptual_weight * parts["perceptual"]
     if config.cross_view_weight > 0:
-        parts["cross"] = cross_view_error(model, gaussians, cameras, images)
+        parts["cross"] = cross_view_error(model, gaussians, cameras, images, target.depth_range)
         distortion = distortion + config.cross_view_weight * parts["cross"]
     if config.depth_weight > 0 and target.s_start is not None:
         parts["depth"] = (s.float() - target.s_start).abs().mean()
         distortion = distortion + config.depth_weight * parts["depth"]
     loss = target.lam / LAMBDA_MAX * distortion + config.rate_weight * parts["bpp"]
+    if config.anchor_weight > 0:
+        moved = latents if compressed is None else compressed.latents
+        parts["anchor"] = torch.stack([(z - z0).square().mean() for z, z0 in zip(moved, target.latents)]).mean()
+        loss = loss + config.anchor_weight * parts["anchor"]
     return loss, parts
 
 
-def cross_view_error(model, gaussians: Gaussians, cameras: Cameras, images: torch.Tensor) -> torch.Tensor:
+def cross_view_error(model, gaussians: Gaussians, cameras: Cameras, images: torch.Tensor,
+                     depth_range: tuple[float, float]) -> torch.Tensor:
     """Mean squared error of each context view predicted by the other views' Gaussians alone, rendered over its
     own photograph (so what they leave uncovered costs nothing): 0-dim. ``gaussians`` are the decoder's V*H*W
     pixel-aligned Gaussians, view-major."""
@@ -243,7 +279,7 @@ def cross_view_error(model, gaussians: Gaussians, cameras: Cameras, images: torc
         others = [pieces[u] for u in range(views) if u != v]
         merged = Gaussians(**{name: torch.cat([getattr(p, name) for p in others])
                               for name in ("means", "quats", "scales", "opacities", "sh")})
-        out = model.render(merged, cameras.select([v]))
+        out = model.render(merged, cameras.select([v]), depth_range=depth_range)
         over_photo = out["rgb"] + (1.0 - out["alpha"][:, None]) * images[v:v + 1]
         errors.append(F.mse_loss(over_photo, images[v:v + 1]))
     return torch.stack(errors).mean()
@@ -266,7 +302,8 @@ def _learning_rate(config: RDOConfig, step: int, elapsed: float) -> float:
 
 
 def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, start: CompressedLatents,
-                     config: RDOConfig, progress: bool = False) -> RDOResult:
+                     config: RDOConfig, progress: bool = False, perceptual: torch.nn.Module | None = None,
+                     on_check: Callable[[RDOCheck, CompressedLatents], None] | None = None) -> RDOResult:
     """Optimise the latents of a scene from the amortised coding ``start`` (see the module docstring).
 
     Args:
@@ -276,6 +313,8 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
         start: the amortised encoder's coding, with ``feature`` (``compress(..., reconstruct=True)``).
         config: the settings; ``config.steps`` of 0 returns ``start`` as it is.
         progress: show a progress bar (tqdm, on a terminal's stderr).
+        perceptual: the perceptual network of ``config.perceptual_weight`` (see :func:`rdo_target`).
+        on_check: called with every check and its coding (step 0 included), e.g. to score target views.
     Returns:
         :class:`RDOResult`.
     """
@@ -285,56 +324,60 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
         return RDOResult(start, 0, 0, 0.0, "steps")
     if start.feature is None:
         raise InputError("optimise_latents needs the amortised coding's feature: compress with reconstruct=True")
-    codec = model.codec
-    height, width = cameras.height // FEATURE_STRIDE, cameras.width // FEATURE_STRIDE
     was_training = model.training
     frozen = [p.requires_grad for p in model.parameters()]
     model.requires_grad_(False)
+    checks: list[RDOCheck] = []
+    kept: dict = {}
+
+    def record(check: RDOCheck, compressed: CompressedLatents) -> None:
+        checks.append(check)
+        if not kept or check.loss < kept["check"].loss:
+            kept.update(check=check, compressed=compressed)
+        if on_check is not None:
+            on_check(check, compressed)
+
     try:
-        target = rdo_target(model, images, cameras, lam, start, config)
-        best = _measure(model, start, target, config, 0, time.perf_counter() - began)
-        best_compressed, checks = start, [best]
+        target = rdo_target(model, images, cameras, lam, start, config, perceptual)
+        record(_measure(model, start, target, config, 0, time.perf_counter() - began), start)
         latents = [z.detach().clone().requires_grad_(True) for z in start.latents]
         optimiser = torch.optim.Adam(latents, lr=config.learning_rate)
         generator = torch.Generator(device=images.device).manual_seed(config.seed)
         step, stopped = 0, "steps"
         bar = _progress_bar(config, progress)
         try:
-            while True:
-                elapsed = time.perf_counter() - began
-                if config.steps is not None and step >= config.steps:
-                    break
-                if config.time_budget is not None and elapsed >= config.time_budget:
-                    stopped = "time"
-                    break
-                for group in optimiser.param_groups:
-                    group["lr"] = _learning_rate(config, step, elapsed)
-                rdo_step(model, latents, optimiser, target, config, generator)
-                step += 1
-                _advance(bar, config, step, began)
-                if config.check_every and step % config.check_every == 0 and step != config.steps:
-                    check, compressed = _check(model, latents, target, config, step, began)
-                    if check is None:
-                        stopped = "non-finite"
+            with validation(False):  # the model's outputs, not user input: one check per step would sync
+                while True:
+                    elapsed = time.perf_counter() - began
+                    if config.steps is not None and step >= config.steps:
                         break
-                    checks.append(check)
-                    if check.loss < best.loss:
-                        best, best_compressed = check, compressed
-                    _describe(bar, check, best)
+                    if config.time_budget is not None and elapsed >= config.time_budget:
+                        stopped = "time"
+                        break
+                    for group in optimiser.param_groups:
+                        group["lr"] = _learning_rate(config, step, elapsed)
+                    rdo_step(model, latents, optimiser, target, config, generator)
+                    step += 1
+                    _advance(bar, config, step, began)
+                    if config.check_every and step % config.check_every == 0 and step != config.steps:
+                        measured = _check(model, latents, target, config, step, began)
+                        if measured is None:
+                            stopped = "non-finite"
+                            break
+                        record(*measured)
+                        _describe(bar, checks[-1], kept["check"])
         except KeyboardInterrupt:
             stopped = "interrupted"
         finally:
             if bar is not None:
                 bar.close()
-        if stopped != "non-finite" and (not checks or checks[-1].step != step) and step > 0:
-            check, compressed = _check(model, latents, target, config, step, began)
-            if check is None:
+        if stopped != "non-finite" and step > checks[-1].step:
+            measured = _check(model, latents, target, config, step, began)
+            if measured is None:
                 stopped = "non-finite"
             else:
-                checks.append(check)
-                if check.loss < best.loss:
-                    best, best_compressed = check, compressed
-        return RDOResult(best_compressed, best.step, step, time.perf_counter() - began, stopped, checks)
+                record(*measured)
+        return RDOResult(kept["compressed"], kept["check"].step, step, time.perf_counter() - began, stopped, checks)
     finally:
         for p, flag in zip(model.parameters(), frozen):
             p.requires_grad_(flag)
@@ -358,15 +401,15 @@ def rdo_step(model, latents: list[torch.Tensor], optimiser: torch.optim.Optimize
 
 
 def _check(model, latents: list[torch.Tensor], target: RDOTarget, config: RDOConfig, step: int,
-           began: float) -> tuple[RDOCheck | None, CompressedLatents | None]:
-    """Code the latents for real and measure them; (None, None) when they, or their loss, are not finite."""
+           began: float) -> tuple[RDOCheck, CompressedLatents] | None:
+    """Code the latents for real and measure them; None when they, or their loss, are not finite."""
     if not all(bool(torch.isfinite(z).all()) for z in latents):
-        return None, None
+        return None
     model.eval()
     compressed = model.codec.compress_latents(latents, target.lam, target.cameras.height // FEATURE_STRIDE,
                                               target.cameras.width // FEATURE_STRIDE, reconstruct=True)
     check = _measure(model, compressed, target, config, step, time.perf_counter() - began)
-    return (check, compressed) if math.isfinite(check.loss) else (None, None)
+    return (check, compressed) if math.isfinite(check.loss) else None
 
 
 @torch.no_grad()
