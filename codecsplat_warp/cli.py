@@ -150,7 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--jpeg-qualities", default=",".join(map(str, IMAGE_CODEC_QUALITIES["jpeg"])),
                           help="comma list of JPEG qualities (1-100) of the JPEG + codec-free baseline (default "
                           "%(default)s)")
-    evaluate.add_argument("--rdo-presets", help="comma list of encoder RDO presets with steps (medium, slow): each "
+    evaluate.add_argument("--rdo-presets", help="comma list of encoder RDO presets that take steps (medium, slow): each "
                           "adds CodecSplat rows at every lambda, encoded with that rate-distortion optimisation "
                           "(default: none)")
     evaluate.add_argument("--rdo-steps", help="comma list of RDO step counts: each adds CodecSplat rows at every "

@@ -21,7 +21,7 @@ from codecsplat_warp.eval.report import (BACKBONE, CODECSPLAT, COPY_NEAREST, plo
                                          plot_rate_distortion, table1, table2)
 from codecsplat_warp.export.video import to_uint8_frames
 from codecsplat_warp.metrics.image import ImageMetrics
-from codecsplat_warp.model import rdo
+from codecsplat_warp.choices import RDO_PRESETS
 from codecsplat_warp.model.pretrained import save_pretrained
 from conftest import tiny_coding_model
 from test_cli_commands import write_scene
@@ -54,7 +54,7 @@ class _Counter:
 
 
 def test_image_codec_and_rdo_rows_of_one_sample(scenes, model, monkeypatch):
-    monkeypatch.setitem(rdo.PRESET_STEPS, "medium", 2)  # a preset's count, kept tiny
+    monkeypatch.setitem(RDO_PRESETS, "medium", 0.25)  # a preset's count, kept tiny (the least, 5 steps for 2 views)
     sample = index_samples(find_scenes(scenes / "data"), scenes / "index.json", PROTOCOLS["scene"])[0]
     codecs = [ImageCodec("webp", 5), ImageCodec("webp", 90), ImageCodec("jpeg", 10)]
     evaluator = Evaluator(model, ImageMetrics(None), (64.0,), (), torch.device("cpu"), keep_renders=True,
@@ -70,7 +70,7 @@ def test_image_codec_and_rdo_rows_of_one_sample(scenes, model, monkeypatch):
         ("WebP + codec-free", "q=90"), ("JPEG + codec-free", "q=10")]
     assert progress.n == evaluator.steps_per_sample == len(rows) == len(evaluator.renders)
     amortised, medium, one = rows[1:4]
-    assert amortised.rdo is None and (medium.rdo["steps"], one.rdo["steps"]) == (2, 1)
+    assert amortised.rdo is None and (medium.rdo["steps"], one.rdo["steps"]) == (5, 1)
     assert medium.compress_s > medium.rdo["seconds"] > 0  # the optimisation is compress time
     # every image row: the files plus the header and cameras of the CodecSplat bitstream; the model saw the decoded
     # photographs (the codec-free row saw the originals)
@@ -118,7 +118,7 @@ def test_the_new_options_belong_to_the_evaluation_a_run_resumes(scenes, model, t
     saved = json.loads((tmp_path / "results.json").read_text())
     assert saved["samples_done"] == 1 and len(saved["rows"]) == 2 + 2 + 1 + 2 + 1  # floor, λ x 3, PLY, images
     assert saved["rdo"] == [{"method": "CodecSplat RDO (medium)", "preset": "medium",
-                             "steps": rdo.PRESET_STEPS["medium"], "seed": 0},
+                             "steps": RDOSetting(preset="medium").resolved_steps, "seed": 0},
                             {"method": "CodecSplat RDO (3 steps)", "preset": "fast", "steps": 3, "seed": 0}]
     monkeypatch.setattr(Evaluator, "run", _fake_run(calls, interrupt_at=None))
     assert evaluate(model, _config(scenes, tmp_path), torch.device("cpu"))["samples_done"] == 2
@@ -127,7 +127,7 @@ def test_the_new_options_belong_to_the_evaluation_a_run_resumes(scenes, model, t
                     {"rdo_seed": 1}):
         with pytest.raises(DataError, match=r"\(options(, RDO steps)? differ\)"):
             evaluate(model, _config(scenes, tmp_path, **changes), torch.device("cpu"))
-    monkeypatch.setitem(rdo.PRESET_STEPS, "medium", rdo.PRESET_STEPS["medium"] + 1)  # another version's preset
+    monkeypatch.setitem(RDO_PRESETS, "medium", RDO_PRESETS["medium"] * 2)  # another version's preset
     with pytest.raises(DataError, match=r"\(RDO steps differ\)"):
         evaluate(model, _config(scenes, tmp_path), torch.device("cpu"))
     assert calls == ["a", "b"]

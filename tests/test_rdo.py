@@ -148,7 +148,9 @@ def test_bad_arguments_get_a_typed_error_at_once(kwargs, match):
 
 def test_preset_configs():
     assert not rdo.rdo_config("fast").optimises
-    assert rdo.rdo_config("medium").steps == rdo.PRESET_STEPS["medium"]
+    assert rdo.rdo_config("medium", views=2).steps == rdo.preset_steps("medium", 2) == 5
+    assert rdo.rdo_config("slow", views=8).steps == rdo.preset_steps("slow", 8) == 320
+    assert rdo.preset_steps("medium", 8) * 4 == rdo.preset_steps("slow", 8), "medium takes a quarter of slow's steps"
     assert rdo.rdo_config("fast", time_budget=3.0).steps is None
-    assert rdo.rdo_config("slow", time_budget=3.0).steps == rdo.PRESET_STEPS["slow"]
+    assert rdo.rdo_config("slow", time_budget=3.0, views=2).steps == rdo.preset_steps("slow", 2)
     assert rdo.rdo_config("slow", steps=7).steps == 7

@@ -61,7 +61,8 @@ import torch
 from tqdm.auto import tqdm
 
 from ..baselines import FeatureDeflate, ImageCodec, PlyDeflate, PngCompression
-from ..choices import BASELINE_NAMES, IMAGE_CODEC_QUALITIES, OUTPUT_BASELINES, PAPER_LAMBDAS
+from ..choices import (BASELINE_NAMES, IMAGE_CODEC_QUALITIES, OUTPUT_BASELINES, PAPER_LAMBDAS, RDO_MIN_PRESET_STEPS,
+                       RDO_PRESETS)
 from ..codec import bytes_report, check_lambda
 from ..errors import DataError, InputError, NoSamplesError
 from ..export.files import write_json, write_text
@@ -88,7 +89,7 @@ SIDE_PARTS = ("header", "cameras")
 @dataclass(frozen=True)
 class RDOSetting:
     """One encoder rate-distortion optimisation that ``codecsplat eval`` runs at every lambda: a ``preset`` of
-    :data:`codecsplat_warp.model.rdo.PRESET_STEPS`, or ``steps`` (which override the preset's count), with the
+    :data:`codecsplat_warp.choices.RDO_PRESETS`, or ``steps`` (which override the preset's count), with the
     quantisation-noise ``seed``.
 
     Raises:
@@ -116,9 +117,12 @@ class RDOSetting:
         return rdo_method(self.name)
 
     @property
-    def resolved_steps(self) -> int:
-        """The optimisation steps it takes (a preset's count as :mod:`codecsplat_warp.model.rdo` sets it now)."""
-        return rdo_config(self.preset, self.steps).steps
+    def resolved_steps(self) -> int | str:
+        """The optimisation steps it takes: a count, or a preset's rule as :mod:`codecsplat_warp.choices` sets it now
+        (``5 x views^2``, at least :data:`~codecsplat_warp.choices.RDO_MIN_PRESET_STEPS`)."""
+        if self.steps is not None:
+            return self.steps
+        return f"{RDO_PRESETS[self.preset]:g} x views^2, at least {RDO_MIN_PRESET_STEPS}"
 
     @property
     def encode_options(self) -> dict:
@@ -356,7 +360,7 @@ class EvalConfig:
     jpeg_qualities: tuple[int, ...] = IMAGE_CODEC_QUALITIES["jpeg"]
     """Qualities (1-100) of the JPEG + codec-free rows, with ``jpeg`` in ``baselines``."""
     rdo_presets: tuple[str, ...] = ()
-    """Encoder RDO presets (:data:`codecsplat_warp.model.rdo.PRESET_STEPS`, those with steps): each adds CodecSplat
+    """Encoder RDO presets (:data:`codecsplat_warp.choices.RDO_PRESETS`, those with steps): each adds CodecSplat
     rows at every lambda, encoded with that optimisation."""
     rdo_steps: tuple[int, ...] = ()
     """RDO step counts (>= 1): each adds CodecSplat rows at every lambda, optimised for that many steps."""

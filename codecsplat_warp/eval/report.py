@@ -25,8 +25,10 @@ def rdo_method(name: str) -> str:
     return f"{CODECSPLAT} RDO ({name})"
 
 
-def steps_text(steps: int) -> str:
-    """``1 step``, ``50 steps``."""
+def steps_text(steps: int | str) -> str:
+    """``1 step``, ``50 steps``; a preset's rule (a string) as it is."""
+    if isinstance(steps, str):
+        return steps
     return f"{steps} step" if steps == 1 else f"{steps} steps"
 
 

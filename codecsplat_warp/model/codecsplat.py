@@ -176,7 +176,9 @@ class CodecSplat(nn.Module):
         Args:
             images: [V,3,H,W] in [0,1]; cameras: the V context cameras (both on the model's device).
             lam: rate-distortion trade-off in [16, 1024]; larger is more bytes and better quality.
-            preset: ``"fast"`` (the amortised encoder alone), ``"medium"`` or ``"slow"`` (:data:`.rdo.PRESET_STEPS`).
+            preset: ``"fast"`` (the amortised encoder alone), ``"medium"`` or ``"slow"``: optimisation steps that grow
+                with the square of the view count (:func:`.rdo.preset_steps`; 5 and 20 steps for 2 views, 80 and
+                320 for 8).
             steps: optimisation steps, overriding the preset's (0: none).
             time_budget: wall seconds the optimisation may take at most (None: no limit).
             seed: seed of the optimisation's quantisation noise (the same seed repeats a run on the CPU).
@@ -191,7 +193,7 @@ class CodecSplat(nn.Module):
         """
         self._require_codec()
         lam = float(np.float32(check_lambda(lam)))
-        config = rdo_config(preset, steps, time_budget, seed, **(rdo_settings or {}))
+        config = rdo_config(preset, steps, time_budget, seed, cameras.num_views, **(rdo_settings or {}))
         images = self._check_inputs(images, cameras)
         with torch.autocast(images.device.type, dtype=torch.bfloat16, enabled=images.device.type == "cuda"):
             enc = self.mvenc(images, cameras)

@@ -45,6 +45,7 @@ from torch.profiler import record_function
 
 from ..cameras import Cameras
 from ..checks import validation
+from ..choices import RDO_MIN_PRESET_STEPS, RDO_PRESETS
 from ..codec.latent import LAMBDA_MAX, CompressedLatents, check_lambda
 from ..errors import InputError
 from ..gaussians import Gaussians
@@ -55,10 +56,19 @@ from .mvenc import context_neighbours
 LATENT_LIMIT = 4096.0
 """Latents are clamped to [-LATENT_LIMIT, LATENT_LIMIT] quantisation steps after every step."""
 
-PRESET_STEPS = {"fast": 0, "medium": 100, "slow": 400}
-"""Optimisation steps of each preset: ``fast`` is the amortised encoder alone (the API's default)."""
+PRESETS = tuple(RDO_PRESETS)
+"""The presets' names: ``fast`` is the amortised encoder alone (the API's default), ``medium`` and ``slow`` optimise
+(:func:`preset_steps`)."""
 
-PRESETS = tuple(PRESET_STEPS)
+
+def preset_steps(preset: str, views: int) -> int:
+    """Optimisation steps of ``preset`` for ``views`` context views: :data:`~codecsplat_warp.choices.RDO_PRESETS`'s
+    factor times views squared, at least :data:`~codecsplat_warp.choices.RDO_MIN_PRESET_STEPS` (0 for ``fast``).
+    InputError for an unknown preset."""
+    if preset not in RDO_PRESETS:
+        raise InputError(f"unknown RDO preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    factor = RDO_PRESETS[preset]
+    return 0 if factor == 0 else max(RDO_MIN_PRESET_STEPS, round(factor * views * views))
 
 
 @dataclass(frozen=True)
@@ -88,7 +98,7 @@ class RDOConfig:
 
     steps: int | None = 0
     time_budget: float | None = None
-    learning_rate: float = 0.05
+    learning_rate: float = 0.1
     final_lr_fraction: float = 0.1
     rate_weight: float = 1.3e-3
     cross_view_weight: float = 0.0
@@ -129,9 +139,9 @@ class RDOConfig:
 
 
 def rdo_config(preset: str = "fast", steps: int | None = None, time_budget: float | None = None,
-               seed: int = 0, **settings) -> RDOConfig:
-    """The :class:`RDOConfig` of a preset (:data:`PRESET_STEPS`), with ``steps`` (overrides the preset's count),
-    ``time_budget`` and any other field given.
+               seed: int = 0, views: int = 2, **settings) -> RDOConfig:
+    """The :class:`RDOConfig` of a preset for ``views`` context views (:func:`preset_steps`), with ``steps``
+    (overrides the preset's count), ``time_budget`` and any other field given.
 
     With a ``time_budget`` and neither ``steps`` nor a preset that optimises, the steps are unlimited: the budget
     alone ends the run.
@@ -139,10 +149,9 @@ def rdo_config(preset: str = "fast", steps: int | None = None, time_budget: floa
     Raises:
         InputError: an unknown preset, steps < 0, a budget <= 0, or another bad setting.
     """
-    if preset not in PRESET_STEPS:
-        raise InputError(f"unknown RDO preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    preset_count = preset_steps(preset, views)
     if steps is None:
-        steps = PRESET_STEPS[preset]
+        steps = preset_count
         if time_budget is not None and steps == 0:
             steps = None
     return RDOConfig(steps=steps, time_budget=time_budget, seed=seed, **settings)
