@@ -215,3 +215,40 @@ def test_every_benchmark_is_a_bench_subcommand():
     assert "codec" in BENCHMARKS
     for name in BENCHMARKS:
         assert build_parser().parse_args(["bench", name, "--device", "cpu"]).benchmark == name
+
+
+def test_encode_with_rdo_steps_reports_the_optimisation(workspace):
+    result = codecsplat(workspace, "encode", "scenes/a", "--views", "0,5", "--lambda", "256", "--steps", "3",
+                        "-o", "rdo.csplat")
+    assert result["rdo"]["steps"] == 3 and result["rdo"]["stopped"] == "steps"
+    assert result["bytes"]["total"] == (workspace / "rdo.csplat").stat().st_size
+    assert result["preset"] == "fast"  # the CPU's default preset; --steps overrides its count
+
+
+def test_ctrl_c_during_rdo_writes_the_best_bitstream_so_far(workspace, monkeypatch, capsys):
+    from codecsplat_warp.model import rdo
+
+    real_step, calls = rdo.rdo_step, {"n": 0}
+
+    def interrupted(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return real_step(*args, **kwargs)
+
+    monkeypatch.setattr(rdo, "rdo_step", interrupted)
+    out = workspace / "interrupted.csplat"
+    args = ["encode", "scenes/a", "--views", "0,5", "--preset", "slow", "-o", str(out), "--device", "cpu", "--json",
+            "--checkpoint", str(workspace / "tiny.safetensors")]
+    monkeypatch.chdir(workspace)
+    assert main(args) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["rdo"]["stopped"] == "interrupted" and result["rdo"]["steps"] == 2
+    assert out.stat().st_size == result["bytes"]["total"] and not list(workspace.glob(".interrupted*"))
+
+
+@pytest.mark.parametrize("option, value", [("--steps", "-2"), ("--time-budget", "0"), ("--time-budget", "nan")])
+def test_bad_rdo_arguments_fail_before_any_work(workspace, capsys, option, value):
+    args = ["encode", "no-such-scene", "-o", str(workspace / "never.csplat"), option, value, "--device", "cpu"]
+    assert main(args) == EXIT_USER
+    assert option in _one_line_error(capsys)
