@@ -22,6 +22,10 @@ DEMO_LAMBDAS = (16.0, 128.0, 1024.0)
 DEMO_TARGET_VIEWS = 2
 """Target views ``codecsplat demo`` renders and scores."""
 
+DEMO_RDO_STEPS = 10
+"""Encoder rate-distortion optimisation steps of the demo's extra bitstream at its largest lambda (about 45 s on a
+2-core CPU for the shipped scene's two views; 0 leaves it out)."""
+
 OUTPUT_BASELINES = ("ply", "png", "feature")
 """Baselines that compress the codec-free model's output: (a) PLY + Deflate, (b) PNG, (c) float16 feature + Deflate."""
 

@@ -78,7 +78,7 @@ def _number_list(kind, text: str, what: str) -> list:
 def build_parser() -> argparse.ArgumentParser:
     from .bench.options import ARGUMENTS as BENCHMARK_ARGUMENTS
     from .choices import BASELINE_NAMES, DEMO_LAMBDAS, DEMO_SCENE, DEMO_SEED, DEMO_TARGET_VIEWS, IMAGE_CODEC_QUALITIES
-    from .choices import PROCEDURAL
+    from .choices import DEMO_RDO_STEPS, PROCEDURAL
     from .choices import FRAME_FORMATS as FORMATS
     from .choices import PAPER_LAMBDAS, PROTOCOL_NAMES as PROTOCOLS, RDO_PRESETS
 
@@ -96,6 +96,9 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--seed", type=int, default=DEMO_SEED, help=f"seed of the {PROCEDURAL} room (default %(default)s)")
     demo.add_argument("--targets", type=int, default=DEMO_TARGET_VIEWS,
                       help="target views rendered and scored (default %(default)s)")
+    demo.add_argument("--rdo-steps", type=int, default=DEMO_RDO_STEPS,
+                      help="encoder rate-distortion optimisation steps of one more bitstream at the largest lambda, "
+                      "shown beside the amortised ones; 0 leaves it out (default %(default)s)")
     demo.add_argument("--lpips-weights", help="folder with lpips_{vgg,alex}.safetensors (default $CODECSPLAT_LPIPS_WEIGHTS)")
 
     encode = sub.add_parser("encode", help="scene (any supported format) -> scene bitstream")
@@ -318,14 +321,15 @@ def _cmd_demo(args) -> int:
     device = _device(args)
     model = _load_model(args, device)
     config = DemoConfig(out=args.out, scene=args.scene, lambdas=tuple(_number_list(float, args.lambdas, "--lambdas")),
-                        seed=args.seed, target_views=args.targets, lpips_weights=args.lpips_weights,
+                        seed=args.seed, target_views=args.targets, rdo_steps=args.rdo_steps,
+                        lpips_weights=args.lpips_weights,
                         progress=not args.json)
     summary = run_demo(model, config, device)
     lines = [f"demo scene {summary['scene']} ({summary['image_size'][0]}x{summary['image_size'][1]}, "
              f"{len(summary['context_views'])} context + {len(summary['target_views'])} target views) on {device}:"]
     for row in summary["rows"]:
         quality = "  ".join(f"{k} {row[k]:.3f}" for k in ("psnr", "ssim", "lpips_vgg", "lpips_alex") if k in row)
-        lines.append(f"  λ={row['lam']:<6g}{format_bytes(row['bytes']):>12s}  {quality}  "
+        lines.append(f"  {row['setting']:<22s}{format_bytes(row['bytes']):>12s}  {quality}  "
                      f"encode {row['encode_s']:.2f} s, decode {row['decode_s']:.2f} s")
     ply = summary["ply"]
     lines += [f"PLY (λ={ply['lambda']:g}): {ply['gaussians']:,d} Gaussians, {ply['pruned']:,d} pruned "

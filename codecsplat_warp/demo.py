@@ -6,14 +6,15 @@ or ``procedural`` (a procedural room, :func:`codecsplat_warp.data.procedural_sce
 folder (any format :func:`~codecsplat_warp.data.load_scene` reads). A folder's context views are the model's view
 count around its middle view, with the targets between them (:func:`~codecsplat_warp.data.split_context_targets`),
 resized and centre-cropped to the model's image size. The context views are encoded at a few lambdas, each
-bitstream is decoded and its target views rendered and scored against the photographs. Written to the output
-folder:
+bitstream is decoded and its target views rendered and scored against the photographs. One more bitstream at the
+largest lambda comes from the encoder with rate-distortion optimisation (``rdo_steps`` steps of
+:mod:`codecsplat_warp.model.rdo`; the same decoder reads it). Written to the output folder:
 
-* ``scene-lambda<L>.csplat``: the scene bitstreams;
+* ``scene-lambda<L>.csplat`` and ``scene-lambda<L>-rdo.csplat``: the scene bitstreams;
 * ``scene.ply``: the Gaussians decoded from the largest lambda, pruned of those that no demo view (context or
   target) can show (:func:`~codecsplat_warp.model.prune.prune_gaussians`; 3DGS PLY);
-* ``renders/target<i>-lambda<L>.png`` and ``comparison.png`` (the context photographs | per target: the
-  photograph | copy the nearest context view | the codec-free path | one column per lambda);
+* ``renders/target<i>-lambda<L>[-rdo].png`` and ``comparison.png`` (the context photographs | per target: the
+  photograph | copy the nearest context view | the codec-free path | one column per lambda, the RDO one last);
 * ``rate_distortion.png`` and ``summary.json`` (bytes per part, metrics, seconds; the two references under
   ``references``: what copying the nearest context view scores at zero bytes, and the model without its codec).
 """
@@ -30,7 +31,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .cameras import Cameras
-from .choices import DEMO_LAMBDAS, DEMO_SCENE, DEMO_SEED, DEMO_TARGET_VIEWS, PROCEDURAL
+from .choices import DEMO_LAMBDAS, DEMO_RDO_STEPS, DEMO_SCENE, DEMO_SEED, DEMO_TARGET_VIEWS, PROCEDURAL
 from .codec import bytes_report, check_lambda
 from .data import load_scene, split_context_targets
 from .data.procedural import ProceduralConfig, procedural_scene
@@ -58,6 +59,7 @@ class DemoConfig:
     lambdas: tuple[float, ...] = DEMO_LAMBDAS
     seed: int = DEMO_SEED
     target_views: int = DEMO_TARGET_VIEWS
+    rdo_steps: int = DEMO_RDO_STEPS
     lpips_weights: str | None = None
     progress: bool = True
 
@@ -113,35 +115,43 @@ def run_demo(model, config: DemoConfig, device: torch.device) -> dict:
         raise InputError("give at least one lambda")
     if config.target_views < 1:
         raise InputError(f"the demo needs at least 1 target view, got {config.target_views}")
+    if config.rdo_steps < 0:
+        raise InputError(f"the demo's RDO steps must be >= 0, got {config.rdo_steps}")
+    encodes = [(lam, 0) for lam in lambdas] + ([(lambdas[-1], config.rdo_steps)] if config.rdo_steps else [])
     out = pathlib.Path(config.out)
     metrics = ImageMetrics(config.lpips_weights, device)
     start = time.perf_counter()
     quiet = None if config.progress else True  # None: a bar only when stderr is a terminal
-    with tqdm(total=3 + 2 * len(lambdas), desc="demo", unit="step", disable=quiet) as progress:
+    with tqdm(total=3 + 2 * len(encodes), desc="demo", unit="step", disable=quiet) as progress:
         sample = demo_sample(model.config, config.scene, config.seed, config.target_views).to(device)
         progress.update(1)
         references, reference_renders = reference_views(model, sample, metrics)
         progress.update(1)
-        rows, renders, decoded = [], [], None
-        for lam in lambdas:
-            progress.set_postfix_str(f"encode λ={lam:g}")
-            data, encode_s = timed(lambda: model.encode(sample.context_images, sample.context_cameras, lam), device)
-            write_bytes(out / f"scene-lambda{lam:g}.csplat", data)
+        rows, renders, decoded, kept_scene = [], [], None, None
+        for lam, steps in encodes:
+            name = f"λ={lam:g}" + (f" RDO {steps} steps" if steps else "")
+            progress.set_postfix_str(f"encode {name}")
+            data, encode_s = timed(lambda: model.encode(sample.context_images, sample.context_cameras, lam,
+                                                        steps=steps), device)
+            write_bytes(out / _bitstream_name(lam, steps), data)
             progress.update(1)
-            progress.set_postfix_str(f"decode λ={lam:g}")
+            progress.set_postfix_str(f"decode {name}")
             decoded, decode_s = timed(lambda: model.decode_scene(data), device)
+            if not steps:
+                kept_scene = decoded
             (visible, target_report), prune_s = timed(
                 lambda: prune_gaussians(decoded.gaussians, sample.target_cameras), device)
             with torch.no_grad():
                 rgb = model.render(visible, sample.target_cameras)["rgb"]
             scores = {k: statistics.fmean(v) for k, v in metrics(rgb, sample.target_images).items()}
-            rows.append({"method": "CodecSplat", "setting": f"λ={lam:g}", "lam": lam, "bytes": len(data),
+            rows.append({"method": "CodecSplat RDO" if steps else "CodecSplat", "setting": name, "lam": lam,
+                         "rdo_steps": steps, "bytes": len(data),
                          "parts": bytes_report(data), **scores, "encode_s": encode_s, "decode_s": decode_s,
                          "prune_s": prune_s, "pruned_for_targets": target_report.to_dict()})
             renders.append(to_uint8_frames(rgb))
             progress.update(1)
         progress.set_postfix_str("PLY and plots")
-        kept, ply_report = prune_gaussians(decoded.gaussians, _demo_views(sample))  # the largest lambda's scene
+        kept, ply_report = prune_gaussians(kept_scene.gaussians, _demo_views(sample))  # the largest amortised λ
         ply_bytes = write_ply(out / "scene.ply", kept)
         files = _write_images(out, sample, rows, renders, references, reference_renders)
         plot_rate_distortion(rows, out / "rate_distortion.png")
@@ -152,7 +162,7 @@ def run_demo(model, config: DemoConfig, device: torch.device) -> dict:
         "lpips": metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1", "rows": rows, "references": references,
         "ply": {"path": str(out / "scene.ply"), "gaussians": len(kept), "pruned": ply_report.pruned,
                 "prune": ply_report.to_dict(), "bytes": ply_bytes, "lambda": lambdas[-1]},
-        "files": [str(out / f"scene-lambda{lam:g}.csplat") for lam in lambdas] + files
+        "files": [str(out / _bitstream_name(lam, steps)) for lam, steps in encodes] + files
         + [str(out / "scene.ply"), str(out / "rate_distortion.png"), str(out / "summary.json")],
         "seconds": time.perf_counter() - start,
     }
@@ -187,7 +197,7 @@ def quality_table(summary: dict) -> str:
     lines = ["| λ | bytes | " + " | ".join(header for _, header, _ in columns) + " |",
              "|---|---|" + "---|" * len(columns)]
     for row in summary["rows"]:
-        cells = [f"{row['lam']:g}", f"{row['bytes']:,d}"] + [format(row[key], spec) for key, _, spec in columns]
+        cells = [row["setting"][2:], f"{row['bytes']:,d}"] + [format(row[key], spec) for key, _, spec in columns]
         lines.append("| " + " | ".join(cells) + " |")
     for row in summary.get("references", []):
         cells = [row["method"], "0" if row["method"] == COPY_NEAREST else "-"]
@@ -212,16 +222,21 @@ def _write_images(out: pathlib.Path, sample: Sample, rows: list[dict], renders: 
     paths = []
     for row, frames in zip(rows, renders):
         for i, frame in enumerate(frames):
-            path = out / "renders" / f"target{i}-lambda{row['lam']:g}.png"
+            path = out / "renders" / f"target{i}-lambda{row['lam']:g}{'-rdo' if row['rdo_steps'] else ''}.png"
             with atomic_output(path) as tmp:
                 iio.imwrite(tmp, frame, extension=".png")
             paths.append(str(path))
     truth = to_uint8_frames(sample.target_images)
     titles = (["target photograph"] + [f"{_short(r['method'])}\n{r['psnr']:.2f} dB" for r in references]
-              + [f"λ={r['lam']:g}: {format_bytes(r['bytes'])}\n{r['psnr']:.2f} dB" for r in rows])
+              + [f"{r['setting']}: {format_bytes(r['bytes'])}\n{r['psnr']:.2f} dB" for r in rows])
     plot_comparison([truth] + reference_renders + renders, titles, out / "comparison.png",
                     inputs=to_uint8_frames(sample.context_images), input_title="context photograph")
     return paths + [str(out / "comparison.png")]
+
+
+def _bitstream_name(lam: float, rdo_steps: int) -> str:
+    """The file name of the demo's bitstream at ``lam`` (``-rdo`` when the encoder optimised it)."""
+    return f"scene-lambda{lam:g}{'-rdo' if rdo_steps else ''}.csplat"
 
 
 def _short(method: str) -> str:

@@ -121,13 +121,15 @@ def test_eval_writes_both_tables_with_baselines_and_plots(workspace):
 
 
 def test_demo_writes_bitstreams_renders_ply_metrics_and_plots(workspace):
-    summary = codecsplat(workspace, "demo", "--lambdas", "16,1024", "-o", "demo")
+    summary = codecsplat(workspace, "demo", "--lambdas", "16,1024", "--rdo-steps", "2", "-o", "demo")
     out = workspace / "demo"
-    assert summary["scene"] == DEMO_SCENE and [r["lam"] for r in summary["rows"]] == [16, 1024]
+    assert summary["scene"] == DEMO_SCENE and [r["lam"] for r in summary["rows"]] == [16, 1024, 1024]
+    assert [r["rdo_steps"] for r in summary["rows"]] == [0, 0, 2] and summary["rows"][2]["method"] == "CodecSplat RDO"
     truth = demo_sample(get_preset("tiny"), DEMO_SCENE, DEMO_SEED, 2).target_images
     for row in summary["rows"]:
-        assert row["bytes"] == (out / f"scene-lambda{row['lam']:g}.csplat").stat().st_size
-        renders = [iio.imread(out / "renders" / f"target{i}-lambda{row['lam']:g}.png") for i in range(2)]
+        suffix = f"{row['lam']:g}" + ("-rdo" if row["rdo_steps"] else "")
+        assert row["bytes"] == (out / f"scene-lambda{suffix}.csplat").stat().st_size
+        renders = [iio.imread(out / "renders" / f"target{i}-lambda{suffix}.png") for i in range(2)]
         rendered = torch.from_numpy(np.stack(renders)).permute(0, 3, 1, 2).double() / 255
         assert row["psnr"] == pytest.approx(float(psnr(rendered, truth.double()).mean()), abs=0.05)  # uint8 renders
     assert len(read_ply(out / "scene.ply")) == summary["ply"]["gaussians"]
