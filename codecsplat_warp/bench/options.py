@@ -154,8 +154,9 @@ def rdo_arguments(parser: argparse.ArgumentParser) -> None:
                         help="folder of scene folders (default $CODECSPLAT_DATA)")
     parser.add_argument("--index", default=None, help="evaluation index JSON fixing each scene's context and target "
                         "frames (as codecsplat eval --index; default: one nearest-view split per scene)")
-    parser.add_argument("--protocol", choices=("re10k", "dl3dv"), default="re10k",
-                        help="re10k: 2 views 256x256; dl3dv: 8 views 256x448 (default %(default)s)")
+    parser.add_argument("--protocol", choices=("re10k", "dl3dv", "scene"), default="re10k",
+                        help="re10k: 2 views 256x256; dl3dv: 8 views 256x448; scene: the stored size and the model's "
+                        "view count (default %(default)s)")
     parser.add_argument("--scenes", default="", help="comma list of scene folder names to keep (default: all)")
     parser.add_argument("--checkpoint", default=None, help="pretrained model file (default: the shipped model)")
     parser.add_argument("--lambdas", default="16,128,1024", help="comma list of lambdas in [16, 1024] (default %(default)s)")
@@ -172,6 +173,10 @@ def rdo_arguments(parser: argparse.ArgumentParser) -> None:
                         "count to DIR/<scene>-lambda<L>.png (default: none)")
     parser.add_argument("--trajectory", action="store_true", help="also score the targets at every check of each "
                         "run (stored per row; the checks' scoring then counts in the encode seconds)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="worker processes the samples are spread over, round-robin over the visible GPUs "
+                        "(default: one per visible GPU with --device cuda/auto, else 1); workers sharing a GPU slow "
+                        "each other's encode seconds")
     parser.add_argument("--profile", action="store_true", help="profile one step instead (first sample, first lambda)")
     parser.add_argument("--profile-steps", type=int, default=20,
                         help="unprofiled steps whose median wall time --profile reports (default %(default)s)")

@@ -35,12 +35,13 @@ from ..errors import InputError
 from ..eval.protocols import (PROTOCOLS, Sample, eager_plan, find_scenes, folder_index_plan, nearest_context_images,
                               scene_samples, select_scenes)
 from ..eval.report import plot_comparison, pyplot, save_figure
+from ..eval.shards import report_progress, run_sharded, shard_devices, split_round_robin
 from ..export.video import to_uint8_frames
 from ..measure import format_table, machine_name, synchronize
 from ..metrics import LPIPS
 from ..metrics.image import ImageMetrics
 from ..model import pretrained
-from ..model.rdo import RDOConfig, optimise_latents, rdo_config, rdo_step, rdo_target
+from ..model.rdo import RDOConfig, rdo_config, rdo_step, rdo_target
 from .options import RDO_PROFILE_PARTS
 
 METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
@@ -54,26 +55,58 @@ def run(args: argparse.Namespace) -> dict:
     lambdas = [float(x) for x in args.lambdas.split(",") if x.strip()]
     if not lambdas or not steps or any(n < 0 for n in steps):
         raise InputError("--lambdas and --steps need at least one value each, steps >= 0")
+    workers = [device] if args.profile else shard_devices(args.device, args.workers)
     model = pretrained.load_pretrained(args.checkpoint, device)
     samples = _samples(args, model)
     result = {"device": str(device), "machine": machine_name(device), "protocol": args.protocol,
-              "settings": settings, "lambdas": lambdas, "steps": steps}
-    perceptual = LPIPS("vgg", args.lpips_weights).to(device) if settings.get("perceptual_weight", 0) > 0 else None
+              "settings": settings, "lambdas": lambdas, "steps": steps, "workers": len(workers)}
     if args.profile:
+        perceptual = _perceptual(settings, args.lpips_weights, device)
         result["profile"] = profile_step(model, samples[0], lambdas[0], settings, args.profile_steps, device,
                                          perceptual)
-        print(format_profile(result["profile"]))
+        if not args.json:
+            print(format_profile(result["profile"]))
         return result
-    metrics = ImageMetrics(args.lpips_weights, device)
-    rows = []
-    for sample in samples:
-        rows += bench_sample(model, sample.to(device), lambdas, steps, settings, metrics, device, args.pictures,
-                             perceptual, args.trajectory)
-    result.update(rows=rows, summary=summarize(rows), lpips=metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1")
-    print(format_summary(result["summary"], result["machine"]))
+    del model  # each worker loads its own
+    job = {"checkpoint": args.checkpoint, "lambdas": lambdas, "steps": steps, "settings": settings,
+           "lpips_weights": args.lpips_weights, "pictures": args.pictures, "trajectory": args.trajectory}
+    parts = split_round_robin(samples, min(len(workers), len(samples)))
+    results = run_sharded(bench_samples, [(job, part) for part in parts], workers[:len(parts)],
+                          progress=not args.json, desc="bench rdo", unit="sample")
+    position = {_key(sample): i for i, sample in enumerate(samples)}  # the samples' order, whatever the split
+    rows = sorted((row for rows, _ in results for row in rows), key=lambda row: position[_key(row)])
+    result.update(rows=rows, summary=summarize(rows), lpips=results[0][1])
+    if not args.json:
+        print(format_summary(result["summary"], result["machine"]))
     if args.plot:
         plot_curve(result["summary"], pathlib.Path(args.plot))
     return result
+
+
+def bench_samples(shard: tuple[dict, list[Sample]], device: torch.device) -> tuple[list[dict], str]:
+    """One worker's part (:func:`~codecsplat_warp.eval.shards.run_sharded`): the rows of each of its samples
+    (:func:`bench_sample`), in order, and what its LPIPS scores are."""
+    job, samples = shard
+    model = pretrained.load_pretrained(job["checkpoint"], device)
+    metrics = ImageMetrics(job["lpips_weights"], device)
+    perceptual = _perceptual(job["settings"], job["lpips_weights"], device)
+    rows = []
+    for done, sample in enumerate(samples, 1):
+        rows += bench_sample(model, sample.to(device), job["lambdas"], job["steps"], job["settings"], metrics, device,
+                             job["pictures"], perceptual, job["trajectory"])
+        report_progress(done, len(samples))
+    return rows, metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1"
+
+
+def _key(item) -> tuple:
+    """(scene, context, target) of a sample or of one of its rows."""
+    get = item.get if isinstance(item, dict) else lambda name: getattr(item, name)
+    return get("scene"), tuple(get("context")), tuple(get("target"))
+
+
+def _perceptual(settings: dict, lpips_weights: str | None, device: torch.device) -> torch.nn.Module | None:
+    """The LPIPS-VGG network of a perceptual term, or None without one."""
+    return LPIPS("vgg", lpips_weights).to(device) if settings.get("perceptual_weight", 0) > 0 else None
 
 
 def parse_settings(text: str) -> dict:

@@ -1,0 +1,90 @@
+"""``codecsplat bench rdo`` on a tiny model and a procedural scene folder: the curve rows, the trajectory, the
+profile's parts, and bad ``--set`` values."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from codecsplat_warp.bench.options import RDO_PROFILE_PARTS
+from codecsplat_warp.bench.rdo import parse_settings
+from codecsplat_warp.errors import InputError
+from codecsplat_warp.metrics.lpips import WEIGHTS_ENV
+from codecsplat_warp.model import CodecSplat
+from codecsplat_warp.model.pretrained import save_pretrained
+from codecsplat_warp.nn.config import get_preset
+from test_cli_commands import write_scene
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench-rdo")
+    torch.manual_seed(0)
+    model = CodecSplat(get_preset("tiny"), codec=True)
+    model.codec.scale_posterior(30.0)
+    save_pretrained(model, root / "tiny.safetensors")
+    write_scene(root / "scenes" / "a", seed=4)
+    return root
+
+
+def bench(workspace, *args: str) -> dict:
+    command = [sys.executable, "-m", "codecsplat_warp.cli", "bench", "rdo", "--device", "cpu", "--json",
+               "--checkpoint", str(workspace / "tiny.safetensors"), "--data", str(workspace / "scenes"),
+               "--protocol", "scene", *args]
+    env = {k: v for k, v in os.environ.items() if k != WEIGHTS_ENV}
+    done = subprocess.run(command, capture_output=True, text=True, cwd=workspace, env=env)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout)
+
+
+def test_the_curve_has_a_row_per_lambda_and_step_count_and_a_trajectory(workspace):
+    result = bench(workspace, "--lambdas", "64", "--steps", "0,3", "--trajectory", "--set", "check_every=1",
+                   "--plot", str(workspace / "curve.png"))
+    coded = [r for r in result["rows"] if r["method"] == "codecsplat"]
+    assert [(r["lambda"], r["steps"]) for r in coded] == [(64.0, 0), (64.0, 3)]
+    assert "rdo" not in coded[0] and coded[1]["rdo"]["steps"] == 3
+    assert [c["step"] for c in coded[1]["trajectory"]] == [0, 1, 2, 3]
+    assert all("target_psnr" in c and "cross_psnr" in c for c in coded[1]["trajectory"])
+    assert {r["method"] for r in result["rows"]} == {"copy nearest", "codec-free", "codecsplat"}
+    assert (workspace / "curve.png").stat().st_size > 10_000
+    assert result["settings"] == {"check_every": 1}
+
+
+def test_the_profile_names_every_part(workspace):
+    result = bench(workspace, "--profile", "--profile-steps", "2", "--lambdas", "64")
+    profile = result["profile"]
+    assert set(profile["parts_ms"]) == set(RDO_PROFILE_PARTS) and len(profile["step_ms_all"]) == 2
+    assert profile["parts_ms"]["rasterize"]["forward"] > 0 and profile["parts_ms"]["rasterize"]["backward"] > 0
+    assert profile["parts_ms"]["gs_head"]["forward"] > 0 and profile["clock"] == "CPU time"
+
+
+@pytest.mark.parametrize("text, match", [("steps=3", "key=value"), ("learning_rate", "key=value"),
+                                         ("nonsense=1", "key=value"), ("learning_rate=fast", "not a float")])
+def test_bad_settings_are_named(text, match):
+    with pytest.raises(InputError, match=match):
+        parse_settings(text)
+
+
+def test_settings_take_their_fields_types():
+    assert parse_settings("learning_rate=0.2, check_every=5,precision=bfloat16") == {
+        "learning_rate": 0.2, "check_every": 5, "precision": "bfloat16"}
+
+
+def test_two_workers_give_the_rows_of_one_process(workspace):
+    write_scene(workspace / "scenes" / "b", seed=5)
+    try:
+        args = ("--lambdas", "64", "--steps", "0,2")
+        one, two = bench(workspace, *args), bench(workspace, *args, "--workers", "2")
+    finally:
+        import shutil
+        shutil.rmtree(workspace / "scenes" / "b")
+    assert two["workers"] == 2 and one["workers"] == 1
+    assert [(r["scene"], r["method"], r.get("steps")) for r in two["rows"]] == \
+        [(r["scene"], r["method"], r.get("steps")) for r in one["rows"]]
+    for a, b in zip(one["rows"], two["rows"]):
+        assert a.get("bytes") == b.get("bytes") and a["psnr"] == pytest.approx(b["psnr"], abs=1e-4)
