@@ -12,14 +12,18 @@ from the amortised ones, with Adam. Per step (:func:`rdo_loss`), with the codec'
 rounding towards the decoder, noisy rate), the loss is
 
     (lambda / 1024) * [MSE(decoded Gaussians rendered into the context cameras, context images)
+                       + perceptual_weight * LPIPS(the same renders, context images)
                        + cross_view_weight * MSE(each context view predicted by the OTHER views' Gaussians alone,
                                                  rendered over its photograph)
                        + depth_weight * |S - S_amortised|_1]
-    + rate_weight * (estimated bits / context pixels)
+    + rate_weight * (estimated bits / context pixels) + anchor_weight * mean((z - z_amortised)^2)
 
-The cross-view term asks every view's Gaussians to explain the other photographs where they land, which the plain
-context loss does not: with two views it fits each photograph with its own Gaussians and geometry that no other
-viewpoint confirms. The depth term keeps the decoded depth near the amortised decoder's.
+The presets use the first and the rate term alone (the others default to 0): on the held-out scenes the
+cross-view term, the depth term and the anchor lowered the targets' PSNR, and the LPIPS term trades PSNR and bytes
+for LPIPS and needs the LPIPS weights (docs/benchmarks.md, "Encoder RDO"). They stay for experiments
+(``codecsplat bench rdo --set``). With two views the targets' gain peaks after some 20 steps while the context views
+keep improving (the photographs get fitted with geometry that no other view confirms); with eight it still grows
+after 300: the presets' step counts grow with the square of the view count (:func:`preset_steps`).
 
 Every ``check_every`` steps and at the end, the current latents are coded for real (the coder's rounding, the
 float64 prior path; :meth:`LatentCodec.compress_latents`) and scored by the same loss, with the discrete model's
