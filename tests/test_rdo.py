@@ -154,3 +154,21 @@ def test_preset_configs():
     assert rdo.rdo_config("fast", time_budget=3.0).steps is None
     assert rdo.rdo_config("slow", time_budget=3.0, views=2).steps == rdo.preset_steps("slow", 2)
     assert rdo.rdo_config("slow", steps=7).steps == 7
+
+
+def test_the_optional_terms_enter_the_loss_only_when_weighted():
+    model = tiny_coding_model(5)
+    images, cameras = _scene(13)
+    start = model.codec.compress(model(images, cameras)["F_c"].detach(), LAM, reconstruct=True)
+    plain = rdo.RDOConfig(steps=1)
+    weighted = rdo.RDOConfig(steps=1, cross_view_weight=1.0, depth_weight=0.5, anchor_weight=0.1)
+    with torch.no_grad():
+        latents = [z + 0.5 for z in start.latents]
+        base, parts = rdo.rdo_loss(model, latents, rdo.rdo_target(model, images, cameras, LAM, start, plain), plain,
+                                   torch.Generator().manual_seed(0))
+        more, extra = rdo.rdo_loss(model, latents, rdo.rdo_target(model, images, cameras, LAM, start, weighted),
+                                   weighted, torch.Generator().manual_seed(0))
+    assert set(parts) == {"mse", "bpp"} and {"cross", "depth", "anchor"} <= set(extra)
+    assert float(extra["anchor"]) == pytest.approx(0.25) and float(extra["cross"]) > 0
+    expected = base + LAM / 1024 * (extra["cross"] + 0.5 * extra["depth"]) + 0.1 * extra["anchor"]
+    assert float(more) == pytest.approx(float(expected), rel=1e-5)

@@ -41,7 +41,7 @@ from ..measure import format_table, machine_name, synchronize
 from ..metrics import LPIPS
 from ..metrics.image import ImageMetrics
 from ..model import pretrained
-from ..model.rdo import RDOConfig, rdo_config, rdo_step, rdo_target
+from ..model.rdo import RDOConfig, other_views_gaussians, rdo_config, rdo_step, rdo_target
 from .options import RDO_PROFILE_PARTS
 
 METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
@@ -215,13 +215,9 @@ def _trajectory_hook(model, sample: Sample, metrics: ImageMetrics, checks: list[
         gaussians = model.decode_feature(compressed.feature, cameras)[2]
         rgb = model.render(gaussians, sample.target_cameras)["rgb"]
         scores = {k: statistics.fmean(v) for k, v in metrics(rgb, sample.target_images).items()}
-        pieces = gaussians.split(cameras.num_views)
         cross = []
-        for v in range(cameras.num_views):
-            others = [pieces[u] for u in range(cameras.num_views) if u != v]
-            merged = type(gaussians)(**{k: torch.cat([getattr(p, k) for p in others]) for k in
-                                        ("means", "quats", "scales", "opacities", "sh")})
-            own = model.render(merged, cameras.select([v]))["rgb"]
+        for v, others in enumerate(other_views_gaussians(gaussians, cameras.num_views)):
+            own = model.render(others, cameras.select([v]))["rgb"]
             cross.append(float((own.clamp(0, 1) - images[v:v + 1]).square().mean()))
         checks.append({**vars(check), **{f"target_{k}": v for k, v in scores.items()},
                        "cross_psnr": -10 * math.log10(max(statistics.fmean(cross), 1e-12))})

@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Callable
 
 import torch
@@ -285,17 +285,21 @@ def cross_view_error(model, gaussians: Gaussians, cameras: Cameras, images: torc
     """Mean squared error of each context view predicted by the other views' Gaussians alone, rendered over its
     own photograph (so what they leave uncovered costs nothing): 0-dim. ``gaussians`` are the decoder's V*H*W
     pixel-aligned Gaussians, view-major."""
-    views = cameras.num_views
-    pieces = gaussians.split(views)
     errors = []
-    for v in range(views):
-        others = [pieces[u] for u in range(views) if u != v]
-        merged = Gaussians(**{name: torch.cat([getattr(p, name) for p in others])
-                              for name in ("means", "quats", "scales", "opacities", "sh")})
-        out = model.render(merged, cameras.select([v]), depth_range=depth_range)
+    for v, others in enumerate(other_views_gaussians(gaussians, cameras.num_views)):
+        out = model.render(others, cameras.select([v]), depth_range=depth_range)
         over_photo = out["rgb"] + (1.0 - out["alpha"][:, None]) * images[v:v + 1]
         errors.append(F.mse_loss(over_photo, images[v:v + 1]))
     return torch.stack(errors).mean()
+
+
+def other_views_gaussians(gaussians: Gaussians, views: int) -> list[Gaussians]:
+    """For each of ``views`` views, the Gaussians of all the other views: ``gaussians`` are pixel-aligned and
+    view-major (``views`` equal pieces, as the decoder makes them)."""
+    pieces = gaussians.split(views)
+    names = [f.name for f in fields(Gaussians)]
+    return [Gaussians(**{name: torch.cat([getattr(p, name) for u, p in enumerate(pieces) if u != v])
+                         for name in names}) for v in range(views)]
 
 
 def _psnr(mse: float) -> float:
