@@ -248,6 +248,11 @@ class Cameras:
             cache[key] = compute()
         return cache[key]
 
+    def memo_values(self) -> tuple:
+        """The values :meth:`memoized` holds now. Code that captures a CUDA graph over ops on these cameras holds
+        them for the graph's life: the graph reads their memory, and the cache may drop them."""
+        return tuple(value for key, value in self.__dict__.get("_memo", {}).items() if key != "versions")
+
     def with_depth_range(self, near, far) -> "Cameras":
         """The same cameras with new near/far bounds ([V] or scalars)."""
         V = self.num_views

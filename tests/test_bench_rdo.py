@@ -71,8 +71,11 @@ def test_bad_settings_are_named(text, match):
 
 
 def test_settings_take_their_fields_types():
-    assert parse_settings("learning_rate=0.2, check_every=5,precision=bfloat16") == {
-        "learning_rate": 0.2, "check_every": 5, "precision": "bfloat16"}
+    assert parse_settings("learning_rate=0.2, check_every=5,precision=bfloat16,cuda_graphs=off") == {
+        "learning_rate": 0.2, "check_every": 5, "precision": "bfloat16", "cuda_graphs": False}
+    assert parse_settings("cuda_graphs=True") == {"cuda_graphs": True}
+    with pytest.raises(InputError, match="not a bool"):
+        parse_settings("cuda_graphs=maybe")
 
 
 def test_two_workers_give_the_rows_of_one_process(workspace):

@@ -304,6 +304,8 @@ def test_camera_arrays_are_memoized_and_follow_in_place_edits():
     depth = smooth_depth(2, 12, 16)
     first = reproject_average(feat, depth, cams)[0]
     assert len(cams.__dict__["_memo"]) == 2  # the version stamp and one entry
+    held = cams.memo_values()
+    assert len(held) == 1 and held[0] is next(v for k, v in cams.__dict__["_memo"].items() if k != "versions")
     torch.testing.assert_close(reproject_average(feat, depth, cams)[0], first, rtol=0, atol=0)
     with torch.no_grad():
         cams.w2c[1, 0, 3] += 0.5  # moves view 1: the memoized transforms must not be reused
@@ -312,3 +314,4 @@ def test_camera_arrays_are_memoized_and_follow_in_place_edits():
     for _ in range(20):  # fresh neighbour tensors every call: the memo stays bounded
         reproject_average(feat, depth, cams, neighbours=torch.tensor([[1], [0]]))
     assert len(cams.__dict__["_memo"]) <= 9
+    assert all(value is not held[0] for value in cams.memo_values())  # dropped by the cache, still alive for whoever holds it

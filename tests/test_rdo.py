@@ -10,6 +10,7 @@ import pytest
 import torch
 from conftest import tiny_coding_model
 
+from codecsplat_warp.checks import validation
 from codecsplat_warp.codec import parse_bitstream
 from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
 from codecsplat_warp.errors import InputError
@@ -172,3 +173,67 @@ def test_the_optional_terms_enter_the_loss_only_when_weighted():
     assert float(extra["anchor"]) == pytest.approx(0.25) and float(extra["cross"]) > 0
     expected = base + LAM / 1024 * (extra["cross"] + 0.5 * extra["depth"]) + 0.1 * extra["anchor"]
     assert float(more) == pytest.approx(float(expected), rel=1e-5)
+
+
+def _start(model, images, cameras):
+    with torch.no_grad():
+        return model.codec.compress(model(images, cameras)["F_c"], LAM, reconstruct=True)
+
+
+def test_noise_given_to_the_quantiser_is_the_noise_it_would_draw():
+    model = tiny_coding_model(5)
+    images, cameras = _scene(13)
+    start = _start(model, images, cameras)
+    target = rdo.rdo_target(model, images, cameras, LAM, start, rdo.RDOConfig(steps=1))
+    model.train()
+    with torch.no_grad():
+        drawn = rdo.decode_latents(model, start.latents, target, torch.Generator().manual_seed(4))
+        generator = torch.Generator().manual_seed(4)
+        noise = [torch.rand(z.shape, generator=generator) for z in start.latents]
+        given = rdo.decode_latents(model, start.latents, target, noise=noise,
+                                   lambda_embedding=model.codec.embedding(LAM))
+        other = rdo.decode_latents(model, start.latents, target, torch.Generator().manual_seed(5))
+    assert torch.equal(drawn[0], given[0]) and torch.equal(drawn[1], given[1])
+    assert torch.equal(drawn[2].means, given[2].means) and torch.equal(drawn[2].sh, given[2].sh)
+    assert not torch.equal(drawn[0], other[0])  # the noise reaches the rate
+
+
+def test_the_cpu_runs_the_eager_decoder():
+    model = tiny_coding_model(5)
+    images, cameras = _scene(13)
+    start = _start(model, images, cameras)
+    config = rdo.RDOConfig(steps=1, cuda_graphs=True)
+    target = rdo.rdo_target(model, images, cameras, LAM, start, config)
+    assert rdo.step_decoder(model, target, start.latents, config) is None
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU visible to torch")
+def test_the_graphed_decoder_gives_the_eager_loss_and_gradients():
+    model = tiny_coding_model(5).cuda()
+    images, cameras = _scene(13)
+    images, cameras = images.cuda(), cameras.to(device="cuda")
+    start = _start(model, images, cameras)
+    config = rdo.RDOConfig(steps=1)
+    target = rdo.rdo_target(model, images, cameras, LAM, start, config)
+    model.requires_grad_(False)
+    model.train()
+    latents = [z.detach().clone().requires_grad_(True) for z in start.latents]
+    with validation(False):
+        decoder = rdo.GraphedDecoder(model, target, latents)  # a failed capture raises here, with its cause
+    assert isinstance(rdo.step_decoder(model, target, latents, config), rdo.GraphedDecoder)
+    for trial in range(3):  # replays with new latents and new noise
+        (eager, eager_grads), (graphed, graphed_grads) = [
+            _loss_and_gradients(model, latents, target, config, trial, d) for d in (None, decoder)]
+        assert float(graphed) == pytest.approx(float(eager), rel=1e-4)
+        for a, b in zip(eager_grads, graphed_grads):
+            assert float((a - b).norm()) <= 1e-3 * float(a.norm()) + 1e-9
+        with torch.no_grad():
+            for z in latents:
+                z.add_(torch.randn_like(z))
+
+
+def _loss_and_gradients(model, latents, target, config, seed, decoder):
+    generator = torch.Generator(device="cuda").manual_seed(seed)
+    loss, _ = rdo.rdo_loss(model, latents, target, config, generator, decoder=decoder)
+    return loss.detach(), torch.autograd.grad(loss, latents)

@@ -41,7 +41,8 @@ from ..measure import format_table, machine_name, synchronize
 from ..metrics import LPIPS
 from ..metrics.image import ImageMetrics
 from ..model import pretrained
-from ..model.rdo import RDOConfig, other_views_gaussians, rdo_config, rdo_step, rdo_target
+from ..model.rdo import (RDOConfig, latent_optimiser, other_views_gaussians, rdo_config, rdo_step, rdo_target,
+                         step_decoder)
 from .options import RDO_PROFILE_PARTS
 
 METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
@@ -122,10 +123,18 @@ def parse_settings(text: str) -> dict:
                              f"got {item!r}")
         kind = type(getattr(defaults, key))
         try:
-            settings[key] = kind(value)
+            settings[key] = _parse_bool(value) if kind is bool else kind(value)
         except ValueError:
             raise InputError(f"--set {key}: {value!r} is not a {kind.__name__}") from None
     return settings
+
+
+def _parse_bool(text: str) -> bool:
+    """true/false, yes/no, on/off, 1/0 (any case) -> bool; ValueError otherwise."""
+    words = {"true": True, "yes": True, "on": True, "1": True, "false": False, "no": False, "off": False, "0": False}
+    if text.strip().lower() not in words:
+        raise ValueError(text)
+    return words[text.strip().lower()]
 
 
 def _int_list(text: str, what: str) -> list[int]:
@@ -291,12 +300,15 @@ def profile_step(model, sample: Sample, lam: float, settings: dict, steps: int, 
                                      reconstruct=True)
     target = rdo_target(model, sample.context_images, sample.context_cameras, lam, start, config, perceptual)
     latents = [z.detach().clone().requires_grad_(True) for z in start.latents]
-    optimiser = torch.optim.Adam(latents, lr=config.learning_rate)
+    optimiser = latent_optimiser(latents, config)
     frozen = [p.requires_grad for p in model.parameters()]
     model.requires_grad_(False)
     try:
+        model.train()
+        decoder = step_decoder(model, target, latents, config)
+
         def step() -> None:
-            rdo_step(model, latents, optimiser, target, config, None)
+            rdo_step(model, latents, optimiser, target, config, None, decoder)
 
         for _ in range(3):
             step()

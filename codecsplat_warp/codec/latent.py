@@ -322,19 +322,26 @@ class NoisyQuantizer:
 
     Args:
         generator: the noise's random generator, on the latents' device (None: torch's global one).
+        noise: per level, U(0, 1) samples drawn beforehand (float32, each of its latent's shape) to use instead of
+            drawing them (a CUDA graph replays the pass with new samples in the same tensors).
 
     Attributes:
         bits: per level, the estimated bits of each view [V] (float32, differentiable).
     """
 
-    def __init__(self, generator: torch.Generator | None = None):
+    def __init__(self, generator: torch.Generator | None = None, noise: list[torch.Tensor] | None = None):
         self.bits: list[torch.Tensor] = []
         self.generator = generator
+        self.noise = noise
 
     def __call__(self, level: int, z, mean, log_scale):
         residual = z.float() - mean.float()
         rounded = residual + (torch.round(residual) - residual).detach()
-        noise = torch.rand(residual.shape, generator=self.generator, device=residual.device, dtype=residual.dtype)
+        if self.noise is not None:
+            noise = self.noise[level]
+        else:
+            noise = torch.rand(residual.shape, generator=self.generator, device=residual.device,
+                               dtype=residual.dtype)
         noisy = residual + noise - 0.5
         self.bits.append(entropy.gaussian_bits(noisy, log_scale.float().exp()).sum(dim=(1, 2, 3)))
         return mean.float() + rounded
@@ -512,14 +519,17 @@ class LatentCodec(nn.Module):
         return CodecOutput(self.synthesis(x, emb)[..., :h, :w], torch.stack(quantizer.bits).sum(0))
 
     def forward_latents(self, latents: list[torch.Tensor], lam: float, height: int, width: int,
-                        generator: torch.Generator | None = None) -> CodecOutput:
+                        generator: torch.Generator | None = None, noise: list[torch.Tensor] | None = None,
+                        lambda_embedding: torch.Tensor | None = None) -> CodecOutput:
         """Differentiable pass from given latents instead of the analysis and the posterior: per level, the
         posterior means on the gained grid [V,C_l,h_l,w_l] (what :meth:`compress` records in
         :attr:`CompressedLatents.latents`) -> :class:`CodecOutput` on a ``height`` x ``width`` feature grid.
-        Noisy quantisation in training mode (``generator`` draws the noise), the coder's in eval mode."""
+        Noisy quantisation in training mode (``generator`` draws the noise, or ``noise`` gives it: see
+        :class:`NoisyQuantizer`), the coder's in eval mode. ``lambda_embedding``: ``self.embedding(lam)`` computed
+        beforehand (it copies lambda to the device, which a CUDA graph capture must not do)."""
         lam = check_lambda(lam)
-        emb = self.embedding(lam)
-        quantizer = NoisyQuantizer(generator) if self.training else RoundingQuantizer()
+        emb = self.embedding(lam) if lambda_embedding is None else lambda_embedding
+        quantizer = NoisyQuantizer(generator, noise) if self.training else RoundingQuantizer()
         shapes = latent_shapes(self.config, height, width)
         x = self.top_down(emb, lam, latents[0].shape[0], shapes, None, quantizer, latents)
         return CodecOutput(self.synthesis(x, emb)[..., :height, :width], torch.stack(quantizer.bits).sum(0))

@@ -128,6 +128,8 @@ class GaussianHead(nn.Module):
         degrees = torch.cat([torch.full((2 * l + 1,), float(l)) for l in range(config.sh_degree + 1)])
         sh_scale = torch.where(degrees > 0, SH_HIGHER_ORDER_SCALE * 0.25 ** degrees, torch.ones_like(degrees))
         self.register_buffer("sh_scale", sh_scale, persistent=False)
+        # on the module's device, so that a forward pass copies nothing from the host (CUDA graph capture)
+        self.register_buffer("identity_quat", torch.tensor([1.0, 0.0, 0.0, 0.0]), persistent=False)
 
     def forward(self, feature: torch.Tensor, depth: torch.Tensor, cameras: Cameras) -> PixelGaussians:
         """feature [V,C_F,h,w], depth [V,H,W] (metric, in the cameras' bounds) -> :class:`PixelGaussians`."""
@@ -142,7 +144,7 @@ class GaussianHead(nn.Module):
         opacity_raw, offset_raw, scale_raw, quat_raw, sh_raw = raw.split([1, 2, 3, 4, 3 * self.num_sh], dim=-1)
         footprint = pixel_footprint(depth, cameras)[..., None]
         scale_px = cfg.scale_min_px + (cfg.scale_max_px - cfg.scale_min_px) * torch.sigmoid(scale_raw)
-        identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=raw.dtype, device=raw.device)
+        identity = self.identity_quat.to(raw.dtype)
         sh = sh_raw.reshape(*sh_raw.shape[:-1], 3, self.num_sh).transpose(-1, -2) * self.sh_scale[:, None]
         return PixelGaussians(
             opacities=torch.sigmoid(opacity_raw[..., 0]),

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass, field, fields, replace
 from typing import Callable
 
@@ -98,6 +99,8 @@ class RDOConfig:
         seed: seed of the training quantiser's noise.
         precision: ``"float32"`` or ``"bfloat16"`` (bf16 autocast for the networks on CUDA; the geometry and the
             rasterizer stay float32).
+        cuda_graphs: on CUDA in float32, run the decoder up to the Gaussians as CUDA graphs captured once per run
+            (:class:`GraphedDecoder`); ignored on the CPU and in bfloat16.
     """
 
     steps: int | None = 0
@@ -112,6 +115,7 @@ class RDOConfig:
     check_every: int = 100
     seed: int = 0
     precision: str = "float32"
+    cuda_graphs: bool = True
 
     def __post_init__(self) -> None:
         if self.steps is None and self.time_budget is None:
@@ -236,27 +240,144 @@ def rdo_target(model, images: torch.Tensor, cameras: Cameras, lam: float, start:
                      perceptual if target_units is not None else None, target_units)
 
 
+Decoded = tuple[torch.Tensor, torch.Tensor, Gaussians]
+"""What the decoder makes of the latents: (estimated bits of all views, 0-dim; S [V,H,W]; the Gaussians)."""
+
+
+def decode_latents(model, latents: list[torch.Tensor], target: RDOTarget, generator: torch.Generator | None = None,
+                   noise: list[torch.Tensor] | None = None, lambda_embedding: torch.Tensor | None = None) -> Decoded:
+    """The decoder from the latents (the codec's pass in the model's mode, the depth head, R_post, the GS head,
+    the 2D->3D map) -> :data:`Decoded`. ``generator``/``noise``/``lambda_embedding``: see
+    :meth:`LatentCodec.forward_latents`."""
+    cameras = target.cameras
+    with record_function("codec"):
+        coded = model.codec.forward_latents(latents, target.lam, cameras.height // FEATURE_STRIDE,
+                                            cameras.width // FEATURE_STRIDE, generator, noise, lambda_embedding)
+    s, _, gaussians = model.decode_feature(coded.feature, cameras, target.neighbours)
+    return coded.bits.sum(), s, gaussians
+
+
+class GraphedDecoder:
+    """:func:`decode_latents` in training mode, captured as two CUDA graphs (forward, and backward to the
+    latents) for one run's shapes, and replayed through an autograd function.
+
+    One step of the eager decoder launches some 1,500 small kernels from Python (the codec's levels, the heads'
+    convolutions and norms, the Warp reprojection and unprojection, their backward): the GPU waits on the host.
+    Replayed, they cost two launches. The rasterizer, whose buffers depend on the Gaussians, the loss and the
+    optimiser stay eager. Inputs are copied into the graphs' static tensors and outputs and gradients are copied
+    out of them, so nothing outside aliases the graphs' memory; what the graphs read outside their own memory (the
+    lambda embedding, the cameras, their memoized kernel arrays, the neighbours) lives as long as they do. The
+    quantiser's noise is drawn outside the graphs
+    by the run's generator, in the eager decoder's order.
+
+    Args:
+        model: the frozen model (training mode, parameters without gradients), on CUDA.
+        target: the run's :class:`RDOTarget`.
+        latents: the run's latents (float32): their shapes fix the graphs'.
+    Calling it with the latents and the generator gives :data:`Decoded`.
+    """
+
+    WARMUP = 3
+    """Eager forward+backward passes on a side stream before the capture (cuDNN and Warp pick and load kernels)."""
+
+    def __init__(self, model, target: RDOTarget, latents: list[torch.Tensor]):
+        with torch.no_grad():
+            embedding = model.codec.embedding(target.lam)
+        self.noise = [torch.rand_like(z, dtype=torch.float32) for z in latents]
+        self.latents = [z.detach().clone().requires_grad_(True) for z in latents]
+
+        def decode() -> list[torch.Tensor]:
+            bits, s, g = decode_latents(model, self.latents, target, noise=self.noise, lambda_embedding=embedding)
+            return [bits, s, g.means, g.quats, g.scales, g.opacities, g.sh]
+
+        def backward(outputs: list[torch.Tensor], grads: list[torch.Tensor]) -> tuple[torch.Tensor, ...]:
+            return torch.autograd.grad(outputs, self.latents, grads, allow_unused=True)
+
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):
+            for _ in range(self.WARMUP):
+                outputs = decode()
+                backward(outputs, [torch.zeros_like(o) for o in outputs])
+        torch.cuda.current_stream().wait_stream(side)
+        del outputs
+        self.forward_graph, self.backward_graph = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
+        with torch.cuda.graph(self.forward_graph):
+            self.outputs = decode()
+        self.output_grads = [torch.zeros_like(o) for o in self.outputs]
+        with torch.cuda.graph(self.backward_graph, pool=self.forward_graph.pool()):
+            grads = backward(self.outputs, self.output_grads)
+        self.grads = [torch.zeros_like(z) if g is None else g for z, g in zip(self.latents, grads)]
+        # the graphs read these by address: they must live as long as the graphs
+        self.held = (target, embedding, target.cameras.memo_values(), decode)
+
+    def __call__(self, latents: list[torch.Tensor], generator: torch.Generator | None) -> Decoded:
+        for noise in self.noise:
+            noise.copy_(torch.rand(noise.shape, generator=generator, device=noise.device, dtype=noise.dtype))
+        bits, s, *fields_ = _ReplayDecoder.apply(self, *latents)
+        return bits, s, Gaussians(*fields_)
+
+
+class _ReplayDecoder(torch.autograd.Function):
+    """The autograd face of :class:`GraphedDecoder`: forward replays its forward graph on copies of the latents,
+    backward its backward graph on copies of the outputs' gradients."""
+
+    @staticmethod
+    def forward(ctx, graphs: GraphedDecoder, *latents: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        for static, z in zip(graphs.latents, latents):
+            static.detach().copy_(z)
+        graphs.forward_graph.replay()
+        ctx.graphs = graphs
+        return tuple(o.detach().clone() for o in graphs.outputs)
+
+    @staticmethod
+    def backward(ctx, *grads: torch.Tensor):
+        graphs = ctx.graphs
+        for static, g in zip(graphs.output_grads, grads):
+            if g is None:
+                static.zero_()
+            else:
+                static.copy_(g)
+        graphs.backward_graph.replay()
+        return (None, *(g.clone() for g in graphs.grads))
+
+
+def step_decoder(model, target: RDOTarget, latents: list[torch.Tensor], config: RDOConfig
+                 ) -> GraphedDecoder | None:
+    """The decoder that :func:`rdo_step` should use: a :class:`GraphedDecoder` on CUDA in float32 with
+    ``config.cuda_graphs``, else None (the eager :func:`decode_latents`). The model must be in training mode
+    with its parameters frozen. A capture that fails falls back to eager, with a warning."""
+    if not (config.cuda_graphs and config.precision == "float32" and target.images.device.type == "cuda"):
+        return None
+    try:
+        with validation(False):
+            return GraphedDecoder(model, target, latents)
+    except RuntimeError as error:
+        warnings.warn(f"RDO runs without CUDA graphs: capturing the decoder failed ({error})", RuntimeWarning,
+                      stacklevel=2)
+        return None
+
+
 def rdo_loss(model, latents: list[torch.Tensor], target: RDOTarget, config: RDOConfig,
-             generator: torch.Generator | None = None, compressed: CompressedLatents | None = None
-             ) -> tuple[torch.Tensor, dict]:
+             generator: torch.Generator | None = None, compressed: CompressedLatents | None = None,
+             decoder: GraphedDecoder | None = None) -> tuple[torch.Tensor, dict]:
     """The loss of the module docstring and its parts (``mse``, ``cross``, ``depth``, ``bpp`` as 0-dim tensors).
 
     With ``compressed`` (a real coding of ``latents``), its decoder feature and discrete-model bits replace the
-    training quantiser's: the loss the encoder measures at a check.
+    training quantiser's: the loss the encoder measures at a check. ``decoder`` replaces :func:`decode_latents`
+    (:func:`step_decoder`).
     """
     cameras, images = target.cameras, target.images
-    height, width = cameras.height, cameras.width
     autocast = torch.autocast(images.device.type, dtype=torch.bfloat16,
                               enabled=config.precision == "bfloat16" and images.device.type == "cuda")
     with autocast:
-        if compressed is None:
-            with record_function("codec"):
-                coded = model.codec.forward_latents(latents, target.lam, height // FEATURE_STRIDE,
-                                                    width // FEATURE_STRIDE, generator)
-            feature, bits = coded.feature, coded.bits.sum()
+        if compressed is not None:
+            bits = compressed.bits.sum().to(images.device, torch.float32)
+            s, _, gaussians = model.decode_feature(compressed.feature, cameras, target.neighbours)
+        elif decoder is not None:
+            bits, s, gaussians = decoder(latents, generator)
         else:
-            feature, bits = compressed.feature, compressed.bits.sum().to(images.device, torch.float32)
-        s, _, gaussians = model.decode_feature(feature, cameras, target.neighbours)
+            bits, s, gaussians = decode_latents(model, latents, target, generator)
     rgb = model.render(gaussians, cameras, depth_range=target.depth_range)["rgb"]
     with record_function("loss"):
         parts = {"mse": F.mse_loss(rgb, images), "bpp": bits.float() / images[:, 0].numel()}
@@ -358,8 +479,10 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
         target = rdo_target(model, images, cameras, lam, start, config, perceptual)
         record(_measure(model, start, target, config, 0, time.perf_counter() - began), start)
         latents = [z.detach().clone().requires_grad_(True) for z in start.latents]
-        optimiser = torch.optim.Adam(latents, lr=config.learning_rate)
+        optimiser = latent_optimiser(latents, config)
         generator = torch.Generator(device=images.device).manual_seed(config.seed)
+        model.train()
+        decoder = step_decoder(model, target, latents, config)
         step, stopped = 0, "steps"
         bar = _progress_bar(config, progress)
         try:
@@ -373,7 +496,7 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
                         break
                     for group in optimiser.param_groups:
                         group["lr"] = _learning_rate(config, step, elapsed)
-                    rdo_step(model, latents, optimiser, target, config, generator)
+                    rdo_step(model, latents, optimiser, target, config, generator, decoder)
                     step += 1
                     _advance(bar, config, step, began)
                     if config.check_every and step % config.check_every == 0 and step != config.steps:
@@ -401,13 +524,19 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
         model.train(was_training)
 
 
+def latent_optimiser(latents: list[torch.Tensor], config: RDOConfig) -> torch.optim.Adam:
+    """Adam over the latents at ``config.learning_rate`` (fused into one kernel on CUDA)."""
+    return torch.optim.Adam(latents, lr=config.learning_rate, fused=latents[0].device.type == "cuda")
+
+
 def rdo_step(model, latents: list[torch.Tensor], optimiser: torch.optim.Optimizer, target: RDOTarget,
-             config: RDOConfig, generator: torch.Generator | None) -> None:
+             config: RDOConfig, generator: torch.Generator | None, decoder: GraphedDecoder | None = None) -> None:
     """One optimisation step of ``latents`` in place (training quantiser; no host synchronisation of its own):
-    loss, backward, non-finite gradients zeroed, Adam, clamp to +-:data:`LATENT_LIMIT`."""
+    loss, backward, non-finite gradients zeroed, Adam, clamp to +-:data:`LATENT_LIMIT`. ``decoder``: see
+    :func:`step_decoder`."""
     model.train()
     optimiser.zero_grad(set_to_none=True)
-    loss, _ = rdo_loss(model, latents, target, config, generator)
+    loss, _ = rdo_loss(model, latents, target, config, generator, decoder=decoder)
     loss.backward()
     with record_function("optimiser"), torch.no_grad():
         for z in latents:
