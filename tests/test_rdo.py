@@ -207,20 +207,49 @@ def test_the_cpu_runs_the_eager_decoder():
     assert rdo.step_decoder(model, target, start.latents, config) is None
 
 
+def test_optimising_the_feature_gives_a_decodable_bitstream_that_fits_the_context_better():
+    model = tiny_coding_model(0)
+    images, cameras = _scene()
+    amortised = model.encode_scene(images, cameras, LAM)
+    encoded = model.encode_scene(images, cameras, LAM, steps=12, seed=1,
+                                 rdo_settings={"variable": "feature", "feature_step": 0.05})
+    result = encoded.rdo
+    assert result.steps == 12 and result.best_step > 0, result.to_dict()
+    checks = {c.step: c for c in result.checks}
+    assert checks[result.best_step].loss < checks[0].loss
+    assert _context_mse(model, encoded.data, images, cameras) < _context_mse(model, amortised.data, images, cameras)
+
+
+def test_the_feature_variable_needs_the_feature_and_no_latent_anchor():
+    model = tiny_coding_model(0)
+    images, cameras = _scene()
+    start = _start(model, images, cameras)
+    config = rdo.RDOConfig(steps=2, variable="feature")
+    with pytest.raises(InputError, match="feature="):
+        rdo.optimise_latents(model, images, cameras, LAM, start, config)
+    with pytest.raises(InputError, match="anchor_weight"):
+        rdo.RDOConfig(steps=2, variable="feature", anchor_weight=0.1)
+    with pytest.raises(InputError, match="variable"):
+        rdo.RDOConfig(steps=2, variable="weights")
+
+
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU visible to torch")
-def test_the_graphed_decoder_gives_the_eager_loss_and_gradients():
+@pytest.mark.parametrize("variable", ["latents", "feature"])
+def test_the_graphed_decoder_gives_the_eager_loss_and_gradients(variable):
     model = tiny_coding_model(5).cuda()
     images, cameras = _scene(13)
     images, cameras = images.cuda(), cameras.to(device="cuda")
-    start = _start(model, images, cameras)
-    config = rdo.RDOConfig(steps=1)
+    with torch.no_grad():
+        feature = model(images, cameras)["F_c"]
+    start = model.codec.compress(feature, LAM, reconstruct=True)
+    config = rdo.RDOConfig(steps=1, variable=variable)
     target = rdo.rdo_target(model, images, cameras, LAM, start, config)
     model.requires_grad_(False)
     model.train()
-    latents = [z.detach().clone().requires_grad_(True) for z in start.latents]
+    latents = rdo.start_variables(start, config, feature)
     with validation(False):
-        decoder = rdo.GraphedDecoder(model, target, latents)  # a failed capture raises here, with its cause
+        decoder = rdo.GraphedDecoder(model, target, latents, variable)  # a failed capture raises here
     assert isinstance(rdo.step_decoder(model, target, latents, config), rdo.GraphedDecoder)
     for trial in range(3):  # replays with new latents and new noise
         (eager, eager_grads), (graphed, graphed_grads) = [

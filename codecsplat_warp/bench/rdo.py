@@ -42,7 +42,7 @@ from ..metrics import LPIPS
 from ..metrics.image import ImageMetrics
 from ..model import pretrained
 from ..model.rdo import (RDOConfig, latent_optimiser, other_views_gaussians, rdo_config, rdo_step, rdo_target,
-                         step_decoder)
+                         start_variables, step_decoder)
 from .options import RDO_PROFILE_PARTS
 
 METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
@@ -296,10 +296,10 @@ def profile_step(model, sample: Sample, lam: float, settings: dict, steps: int, 
     sample = sample.to(device)
     config = rdo_config("fast", 1, None, 0, **settings)
     with torch.no_grad():
-        start = model.codec.compress(model(sample.context_images, sample.context_cameras)["F_c"], lam,
-                                     reconstruct=True)
+        feature = model(sample.context_images, sample.context_cameras)["F_c"]
+        start = model.codec.compress(feature, lam, reconstruct=True)
     target = rdo_target(model, sample.context_images, sample.context_cameras, lam, start, config, perceptual)
-    latents = [z.detach().clone().requires_grad_(True) for z in start.latents]
+    latents = start_variables(start, config, feature)
     optimiser = latent_optimiser(latents, config)
     frozen = [p.requires_grad for p in model.parameters()]
     model.requires_grad_(False)

@@ -507,14 +507,17 @@ class LatentCodec(nn.Module):
             raise InputError(f"codec state holds tensors this codec lacks: {', '.join(unexpected)}")
         return missing
 
-    def forward(self, feature: torch.Tensor, lam: float) -> CodecOutput:
+    def forward(self, feature: torch.Tensor, lam: float, generator: torch.Generator | None = None,
+                noise: list[torch.Tensor] | None = None, lambda_embedding: torch.Tensor | None = None
+                ) -> CodecOutput:
         """Differentiable pass: F_c [V,C_F,h,w] -> :class:`CodecOutput`. In training mode the quantisation
-        is noisy (:class:`NoisyQuantizer`), in eval mode it is the coder's (:class:`RoundingQuantizer`)."""
+        is noisy (:class:`NoisyQuantizer`), in eval mode it is the coder's (:class:`RoundingQuantizer`).
+        ``generator``, ``noise``, ``lambda_embedding``: as in :meth:`forward_latents`."""
         h, w = feature.shape[-2:]
         lam = check_lambda(lam)
-        emb = self.embedding(lam)
+        emb = self.embedding(lam) if lambda_embedding is None else lambda_embedding
         encoded = self.analysis(self._pad(feature), emb)
-        quantizer = NoisyQuantizer() if self.training else RoundingQuantizer()
+        quantizer = NoisyQuantizer(generator, noise) if self.training else RoundingQuantizer()
         x = self.top_down(emb, lam, feature.shape[0], latent_shapes(self.config, h, w), encoded, quantizer)
         return CodecOutput(self.synthesis(x, emb)[..., :h, :w], torch.stack(quantizer.bits).sum(0))
 

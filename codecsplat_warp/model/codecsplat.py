@@ -204,7 +204,7 @@ class CodecSplat(nn.Module):
         if config.optimises:
             with timer("rdo"), torch.enable_grad():
                 result = optimise_latents(self, images.float(), cameras.to(dtype=torch.float32), lam, compressed,
-                                          config, progress, perceptual, on_check)
+                                          config, progress, perceptual, on_check, f_c.float())
             compressed = result.compressed
         with timer("bitstream"):
             data = pack_bitstream(model_id(self), lam, cameras.to(dtype=self._dtype()), compressed.streams)

@@ -8,7 +8,8 @@ decoder or the bitstream format changes: the optimised latents are coded by the 
 priors, and any decoder of the model decodes them.
 
 What is optimised: the posterior means of every latent level on the gained grid (one quantisation step = 1), starting
-from the amortised ones, with Adam. Per step (:func:`rdo_loss`), with the codec's training quantiser (straight-through
+from the amortised ones, with Adam; or (``RDOConfig.variable="feature"``) the encoder's F_c, which the codec's
+analysis and posterior turn into the latents. Per step (:func:`rdo_loss`), with the codec's training quantiser (straight-through
 rounding towards the decoder, noisy rate), the loss is
 
     (lambda / 1024) * [MSE(decoded Gaussians rendered into the context cameras, context images)
@@ -61,6 +62,9 @@ from .mvenc import context_neighbours
 LATENT_LIMIT = 4096.0
 """Latents are clamped to [-LATENT_LIMIT, LATENT_LIMIT] quantisation steps after every step."""
 
+VARIABLES = ("latents", "feature")
+"""What the optimisation can move (:attr:`RDOConfig.variable`)."""
+
 PRESETS = tuple(RDO_PRESETS)
 """The presets' names: ``fast`` is the amortised encoder alone (the API's default), ``medium`` and ``slow`` optimise
 (:func:`preset_steps`)."""
@@ -101,6 +105,10 @@ class RDOConfig:
             rasterizer stay float32).
         cuda_graphs: on CUDA in float32, run the decoder up to the Gaussians as CUDA graphs captured once per run
             (:class:`GraphedDecoder`); ignored on the CPU and in bfloat16.
+        variable: what Adam moves: ``"latents"`` (the posterior means on the gained grid) or ``"feature"`` (the
+            encoder's F_c, through the codec's analysis and posterior; :func:`optimise_latents` then needs it).
+        feature_step: with ``variable="feature"``, Adam's start step as a fraction of the amortised F_c's standard
+            deviation (``learning_rate`` is the step for the latents).
     """
 
     steps: int | None = 0
@@ -116,6 +124,8 @@ class RDOConfig:
     seed: int = 0
     precision: str = "float32"
     cuda_graphs: bool = True
+    variable: str = "latents"
+    feature_step: float = 0.01
 
     def __post_init__(self) -> None:
         if self.steps is None and self.time_budget is None:
@@ -125,7 +135,8 @@ class RDOConfig:
             raise InputError(f"RDO steps must be an integer >= 0, got {self.steps!r}")
         if self.time_budget is not None and not (math.isfinite(self.time_budget) and self.time_budget > 0):
             raise InputError(f"the RDO time budget must be a number of seconds > 0, got {self.time_budget!r}")
-        positive = {"learning_rate": self.learning_rate, "final_lr_fraction": self.final_lr_fraction}
+        positive = {"learning_rate": self.learning_rate, "final_lr_fraction": self.final_lr_fraction,
+                    "feature_step": self.feature_step}
         for name, value in positive.items():
             if not (math.isfinite(value) and value > 0):
                 raise InputError(f"RDOConfig.{name} must be > 0, got {value!r}")
@@ -137,6 +148,10 @@ class RDOConfig:
                 raise InputError(f"RDOConfig.{name} must be >= 0, got {value!r}")
         if self.check_every < 0:
             raise InputError(f"RDOConfig.check_every must be >= 0, got {self.check_every}")
+        if self.variable not in VARIABLES:
+            raise InputError(f"RDOConfig.variable must be one of {', '.join(VARIABLES)}, got {self.variable!r}")
+        if self.variable == "feature" and self.anchor_weight > 0:
+            raise InputError("RDOConfig.anchor_weight needs variable='latents' (it measures the latents' change)")
         if self.precision not in ("float32", "bfloat16"):
             raise InputError(f"RDOConfig.precision must be float32 or bfloat16, got {self.precision!r}")
 
@@ -257,9 +272,22 @@ def decode_latents(model, latents: list[torch.Tensor], target: RDOTarget, genera
     return coded.bits.sum(), s, gaussians
 
 
+def decode_variables(model, variables: list[torch.Tensor], target: RDOTarget, variable: str,
+                     generator: torch.Generator | None = None, noise: list[torch.Tensor] | None = None,
+                     lambda_embedding: torch.Tensor | None = None) -> Decoded:
+    """:func:`decode_latents` of the latents (``variable="latents"``: ``variables`` are the latents), or of the
+    codec's pass from F_c (``"feature"``: ``variables`` is [F_c], through the analysis and the posterior)."""
+    if variable == "latents":
+        return decode_latents(model, variables, target, generator, noise, lambda_embedding)
+    with record_function("codec"):
+        coded = model.codec(variables[0], target.lam, generator, noise, lambda_embedding)
+    s, _, gaussians = model.decode_feature(coded.feature, target.cameras, target.neighbours)
+    return coded.bits.sum(), s, gaussians
+
+
 class GraphedDecoder:
-    """:func:`decode_latents` in training mode, captured as two CUDA graphs (forward, and backward to the
-    latents) for one run's shapes, and replayed through an autograd function.
+    """:func:`decode_variables` in training mode, captured as two CUDA graphs (forward, and backward to the
+    optimised tensors) for one run's shapes, and replayed through an autograd function.
 
     One step of the eager decoder launches some 1,500 small kernels from Python (the codec's levels, the heads'
     convolutions and norms, the Warp reprojection and unprojection, their backward): the GPU waits on the host.
@@ -272,22 +300,24 @@ class GraphedDecoder:
 
     Args:
         model: the frozen model (training mode, parameters without gradients), on CUDA.
-        target: the run's :class:`RDOTarget`.
-        latents: the run's latents (float32): their shapes fix the graphs'.
-    Calling it with the latents and the generator gives :data:`Decoded`.
+        target: the run's :class:`RDOTarget` (its amortised latents give the noise's shapes).
+        variables: the run's optimised tensors (float32): their shapes fix the graphs'.
+        variable: what they are (:attr:`RDOConfig.variable`).
+    Calling it with the optimised tensors and the generator gives :data:`Decoded`.
     """
 
     WARMUP = 3
     """Eager forward+backward passes on a side stream before the capture (cuDNN and Warp pick and load kernels)."""
 
-    def __init__(self, model, target: RDOTarget, latents: list[torch.Tensor]):
+    def __init__(self, model, target: RDOTarget, variables: list[torch.Tensor], variable: str = "latents"):
         with torch.no_grad():
             embedding = model.codec.embedding(target.lam)
-        self.noise = [torch.rand_like(z, dtype=torch.float32) for z in latents]
-        self.latents = [z.detach().clone().requires_grad_(True) for z in latents]
+        self.noise = [torch.rand_like(z, dtype=torch.float32) for z in target.latents]
+        self.latents = [v.detach().clone().requires_grad_(True) for v in variables]
 
         def decode() -> list[torch.Tensor]:
-            bits, s, g = decode_latents(model, self.latents, target, noise=self.noise, lambda_embedding=embedding)
+            bits, s, g = decode_variables(model, self.latents, target, variable, noise=self.noise,
+                                          lambda_embedding=embedding)
             return [bits, s, g.means, g.quats, g.scales, g.opacities, g.sh]
 
         def backward(outputs: list[torch.Tensor], grads: list[torch.Tensor]) -> tuple[torch.Tensor, ...]:
@@ -311,10 +341,10 @@ class GraphedDecoder:
         # the graphs read these by address: they must live as long as the graphs
         self.held = (target, embedding, target.cameras.memo_values(), decode)
 
-    def __call__(self, latents: list[torch.Tensor], generator: torch.Generator | None) -> Decoded:
+    def __call__(self, variables: list[torch.Tensor], generator: torch.Generator | None) -> Decoded:
         for noise in self.noise:
             noise.copy_(torch.rand(noise.shape, generator=generator, device=noise.device, dtype=noise.dtype))
-        bits, s, *fields_ = _ReplayDecoder.apply(self, *latents)
+        bits, s, *fields_ = _ReplayDecoder.apply(self, *variables)
         return bits, s, Gaussians(*fields_)
 
 
@@ -342,7 +372,7 @@ class _ReplayDecoder(torch.autograd.Function):
         return (None, *(g.clone() for g in graphs.grads))
 
 
-def step_decoder(model, target: RDOTarget, latents: list[torch.Tensor], config: RDOConfig
+def step_decoder(model, target: RDOTarget, variables: list[torch.Tensor], config: RDOConfig
                  ) -> GraphedDecoder | None:
     """The decoder that :func:`rdo_step` should use: a :class:`GraphedDecoder` on CUDA in float32 with
     ``config.cuda_graphs``, else None (the eager :func:`decode_latents`). The model must be in training mode
@@ -351,19 +381,20 @@ def step_decoder(model, target: RDOTarget, latents: list[torch.Tensor], config: 
         return None
     try:
         with validation(False):
-            return GraphedDecoder(model, target, latents)
+            return GraphedDecoder(model, target, variables, config.variable)
     except RuntimeError as error:
         warnings.warn(f"RDO runs without CUDA graphs: capturing the decoder failed ({error})", RuntimeWarning,
                       stacklevel=2)
         return None
 
 
-def rdo_loss(model, latents: list[torch.Tensor], target: RDOTarget, config: RDOConfig,
+def rdo_loss(model, variables: list[torch.Tensor], target: RDOTarget, config: RDOConfig,
              generator: torch.Generator | None = None, compressed: CompressedLatents | None = None,
              decoder: GraphedDecoder | None = None) -> tuple[torch.Tensor, dict]:
     """The loss of the module docstring and its parts (``mse``, ``cross``, ``depth``, ``bpp`` as 0-dim tensors).
 
-    With ``compressed`` (a real coding of ``latents``), its decoder feature and discrete-model bits replace the
+    ``variables``: the optimised tensors (:attr:`RDOConfig.variable`). With ``compressed`` (a real coding of
+    them), its decoder feature and discrete-model bits replace the
     training quantiser's: the loss the encoder measures at a check. ``decoder`` replaces :func:`decode_latents`
     (:func:`step_decoder`).
     """
@@ -375,9 +406,9 @@ def rdo_loss(model, latents: list[torch.Tensor], target: RDOTarget, config: RDOC
             bits = compressed.bits.sum().to(images.device, torch.float32)
             s, _, gaussians = model.decode_feature(compressed.feature, cameras, target.neighbours)
         elif decoder is not None:
-            bits, s, gaussians = decoder(latents, generator)
+            bits, s, gaussians = decoder(variables, generator)
         else:
-            bits, s, gaussians = decode_latents(model, latents, target, generator)
+            bits, s, gaussians = decode_variables(model, variables, target, config.variable, generator)
     rgb = model.render(gaussians, cameras, depth_range=target.depth_range)["rgb"]
     with record_function("loss"):
         parts = {"mse": F.mse_loss(rgb, images), "bpp": bits.float() / images[:, 0].numel()}
@@ -395,7 +426,7 @@ def rdo_loss(model, latents: list[torch.Tensor], target: RDOTarget, config: RDOC
         distortion = distortion + config.depth_weight * parts["depth"]
     loss = target.lam / LAMBDA_MAX * distortion + config.rate_weight * parts["bpp"]
     if config.anchor_weight > 0:
-        moved = latents if compressed is None else compressed.latents
+        moved = variables if compressed is None else compressed.latents
         parts["anchor"] = torch.stack([(z - z0).square().mean() for z, z0 in zip(moved, target.latents)]).mean()
         loss = loss + config.anchor_weight * parts["anchor"]
     return loss, parts
@@ -427,8 +458,9 @@ def _psnr(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-12))
 
 
-def _learning_rate(config: RDOConfig, step: int, elapsed: float) -> float:
-    """The cosine schedule at ``step`` / ``elapsed`` seconds (the further along of the two decides)."""
+def _learning_rate(config: RDOConfig, start: float, step: int, elapsed: float) -> float:
+    """The cosine schedule from ``start`` at ``step`` / ``elapsed`` seconds (the further along of the two
+    decides)."""
     done = 0.0
     if config.steps:
         done = step / config.steps
@@ -436,13 +468,15 @@ def _learning_rate(config: RDOConfig, step: int, elapsed: float) -> float:
         done = max(done, elapsed / config.time_budget)
     done = min(done, 1.0)
     floor = config.final_lr_fraction
-    return config.learning_rate * (floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * done)))
+    return start * (floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * done)))
 
 
 def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, start: CompressedLatents,
                      config: RDOConfig, progress: bool = False, perceptual: torch.nn.Module | None = None,
-                     on_check: Callable[[RDOCheck, CompressedLatents], None] | None = None) -> RDOResult:
-    """Optimise the latents of a scene from the amortised coding ``start`` (see the module docstring).
+                     on_check: Callable[[RDOCheck, CompressedLatents], None] | None = None,
+                     feature: torch.Tensor | None = None) -> RDOResult:
+    """Optimise the latents of a scene from the amortised coding ``start`` (see the module docstring), or with
+    ``config.variable="feature"`` the encoder's F_c that the latents are analysed from.
 
     Args:
         model: a :class:`~codecsplat_warp.model.CodecSplat` with its codec (its weights are not changed).
@@ -453,6 +487,7 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
         progress: show a progress bar (tqdm, on a terminal's stderr).
         perceptual: the perceptual network of ``config.perceptual_weight`` (see :func:`rdo_target`).
         on_check: called with every check and its coding (step 0 included), e.g. to score target views.
+        feature: the amortised F_c [V,C_F,H/2,W/2] that ``start`` codes, for ``config.variable="feature"``.
     Returns:
         :class:`RDOResult`.
     """
@@ -462,6 +497,7 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
         return RDOResult(start, 0, 0, 0.0, "steps")
     if start.feature is None:
         raise InputError("optimise_latents needs the amortised coding's feature: compress with reconstruct=True")
+    variables = start_variables(start, config, feature)
     was_training = model.training
     frozen = [p.requires_grad for p in model.parameters()]
     model.requires_grad_(False)
@@ -478,11 +514,11 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
     try:
         target = rdo_target(model, images, cameras, lam, start, config, perceptual)
         record(_measure(model, start, target, config, 0, time.perf_counter() - began), start)
-        latents = [z.detach().clone().requires_grad_(True) for z in start.latents]
-        optimiser = latent_optimiser(latents, config)
+        optimiser = latent_optimiser(variables, config)
+        first_lr = optimiser.param_groups[0]["lr"]
         generator = torch.Generator(device=images.device).manual_seed(config.seed)
         model.train()
-        decoder = step_decoder(model, target, latents, config)
+        decoder = step_decoder(model, target, variables, config)
         step, stopped = 0, "steps"
         bar = _progress_bar(config, progress)
         try:
@@ -495,12 +531,12 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
                         stopped = "time"
                         break
                     for group in optimiser.param_groups:
-                        group["lr"] = _learning_rate(config, step, elapsed)
-                    rdo_step(model, latents, optimiser, target, config, generator, decoder)
+                        group["lr"] = _learning_rate(config, first_lr, step, elapsed)
+                    rdo_step(model, variables, optimiser, target, config, generator, decoder)
                     step += 1
                     _advance(bar, config, step, began)
                     if config.check_every and step % config.check_every == 0 and step != config.steps:
-                        measured = _check(model, latents, target, config, step, began)
+                        measured = _check(model, variables, target, config, step, began)
                         if measured is None:
                             stopped = "non-finite"
                             break
@@ -512,7 +548,7 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
             if bar is not None:
                 bar.close()
         if stopped != "non-finite" and step > checks[-1].step:
-            measured = _check(model, latents, target, config, step, began)
+            measured = _check(model, variables, target, config, step, began)
             if measured is None:
                 stopped = "non-finite"
             else:
@@ -524,36 +560,54 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
         model.train(was_training)
 
 
-def latent_optimiser(latents: list[torch.Tensor], config: RDOConfig) -> torch.optim.Adam:
-    """Adam over the latents at ``config.learning_rate`` (fused into one kernel on CUDA)."""
-    return torch.optim.Adam(latents, lr=config.learning_rate, fused=latents[0].device.type == "cuda")
+def start_variables(start: CompressedLatents, config: RDOConfig, feature: torch.Tensor | None = None
+                    ) -> list[torch.Tensor]:
+    """The tensors the optimisation moves, as fresh leaves (float32): the amortised latents of ``start``, or for
+    ``config.variable="feature"`` the amortised F_c ``feature`` (InputError when it is missing)."""
+    if config.variable == "latents":
+        return [z.detach().float().clone().requires_grad_(True) for z in start.latents]
+    if feature is None:
+        raise InputError("RDO with variable='feature' needs the amortised F_c: pass feature=")
+    return [feature.detach().float().clone().requires_grad_(True)]
 
 
-def rdo_step(model, latents: list[torch.Tensor], optimiser: torch.optim.Optimizer, target: RDOTarget,
+def latent_optimiser(variables: list[torch.Tensor], config: RDOConfig) -> torch.optim.Adam:
+    """Adam over the optimised tensors (fused into one kernel on CUDA), starting at ``config.learning_rate`` for
+    the latents and at ``config.feature_step`` times F_c's standard deviation for the feature."""
+    lr = config.learning_rate
+    if config.variable == "feature":
+        lr = config.feature_step * float(variables[0].detach().std())
+    return torch.optim.Adam(variables, lr=lr, fused=variables[0].device.type == "cuda")
+
+
+def rdo_step(model, variables: list[torch.Tensor], optimiser: torch.optim.Optimizer, target: RDOTarget,
              config: RDOConfig, generator: torch.Generator | None, decoder: GraphedDecoder | None = None) -> None:
-    """One optimisation step of ``latents`` in place (training quantiser; no host synchronisation of its own):
-    loss, backward, non-finite gradients zeroed, Adam, clamp to +-:data:`LATENT_LIMIT`. ``decoder``: see
-    :func:`step_decoder`."""
+    """One optimisation step of the optimised tensors ``variables`` in place (training quantiser; no host
+    synchronisation of its own): loss, backward, non-finite gradients zeroed, Adam, clamp to
+    +-:data:`LATENT_LIMIT`. ``decoder``: see :func:`step_decoder`."""
     model.train()
     optimiser.zero_grad(set_to_none=True)
-    loss, _ = rdo_loss(model, latents, target, config, generator, decoder=decoder)
+    loss, _ = rdo_loss(model, variables, target, config, generator, decoder=decoder)
     loss.backward()
     with record_function("optimiser"), torch.no_grad():
-        for z in latents:
-            torch.nan_to_num_(z.grad, nan=0.0, posinf=0.0, neginf=0.0)
+        for v in variables:
+            torch.nan_to_num_(v.grad, nan=0.0, posinf=0.0, neginf=0.0)
         optimiser.step()
-        for z in latents:
-            z.clamp_(-LATENT_LIMIT, LATENT_LIMIT)
+        for v in variables:
+            v.clamp_(-LATENT_LIMIT, LATENT_LIMIT)
 
 
-def _check(model, latents: list[torch.Tensor], target: RDOTarget, config: RDOConfig, step: int,
+def _check(model, variables: list[torch.Tensor], target: RDOTarget, config: RDOConfig, step: int,
            began: float) -> tuple[RDOCheck, CompressedLatents] | None:
-    """Code the latents for real and measure them; None when they, or their loss, are not finite."""
-    if not all(bool(torch.isfinite(z).all()) for z in latents):
+    """Code the optimised tensors for real and measure them; None when they, or their loss, are not finite."""
+    if not all(bool(torch.isfinite(v).all()) for v in variables):
         return None
     model.eval()
-    compressed = model.codec.compress_latents(latents, target.lam, target.cameras.height // FEATURE_STRIDE,
-                                              target.cameras.width // FEATURE_STRIDE, reconstruct=True)
+    if config.variable == "feature":
+        compressed = model.codec.compress(variables[0].detach(), target.lam, reconstruct=True)
+    else:
+        compressed = model.codec.compress_latents(variables, target.lam, target.cameras.height // FEATURE_STRIDE,
+                                                  target.cameras.width // FEATURE_STRIDE, reconstruct=True)
     check = _measure(model, compressed, target, config, step, time.perf_counter() - began)
     return (check, compressed) if math.isfinite(check.loss) else None
 
