@@ -205,6 +205,13 @@ def test_the_cpu_runs_the_eager_decoder():
     config = rdo.RDOConfig(steps=1, cuda_graphs=True)
     target = rdo.rdo_target(model, images, cameras, LAM, start, config)
     assert rdo.step_decoder(model, target, start.latents, config) is None
+    cuda = torch.device("cuda")
+    assert not rdo.uses_cuda_graphs(config, torch.device("cpu"))
+    assert rdo.uses_cuda_graphs(rdo.RDOConfig(steps=rdo.GRAPH_MIN_STEPS), cuda)
+    assert rdo.uses_cuda_graphs(rdo.RDOConfig(steps=None, time_budget=5.0), cuda)
+    assert not rdo.uses_cuda_graphs(rdo.RDOConfig(steps=rdo.GRAPH_MIN_STEPS - 1), cuda)  # capture would not pay
+    assert not rdo.uses_cuda_graphs(rdo.RDOConfig(steps=100, cuda_graphs=False), cuda)
+    assert not rdo.uses_cuda_graphs(rdo.RDOConfig(steps=100, precision="bfloat16"), cuda)
 
 
 def test_optimising_the_feature_gives_a_decodable_bitstream_that_fits_the_context_better():
@@ -218,6 +225,39 @@ def test_optimising_the_feature_gives_a_decodable_bitstream_that_fits_the_contex
     checks = {c.step: c for c in result.checks}
     assert checks[result.best_step].loss < checks[0].loss
     assert _context_mse(model, encoded.data, images, cameras) < _context_mse(model, amortised.data, images, cameras)
+
+
+def test_annealed_rounding_stays_between_the_neighbours_and_becomes_rounding_when_cold():
+    from codecsplat_warp.codec.latent import annealed_rounding
+
+    residual = (torch.rand(4000, dtype=torch.float32) - 0.5) * 20
+    uniform = torch.rand(4000)
+    away = (residual - residual.floor() - 0.5).abs() > 0.1
+    for temperature in (0.5, 0.2, 0.05):
+        out = annealed_rounding(residual, uniform, torch.tensor(temperature))
+        assert bool(((out >= residual.floor()) & (out <= residual.floor() + 1)).all())
+    cold = annealed_rounding(residual, uniform, torch.tensor(0.02))
+    torch.testing.assert_close(cold[away], torch.round(residual)[away], atol=1e-3, rtol=0)
+    warm = annealed_rounding(residual, uniform, torch.tensor(0.5))
+    assert float((warm - torch.round(residual)).abs().mean()) > 0.05  # soft while warm
+    leaf = residual.clone().requires_grad_(True)
+    annealed_rounding(leaf, uniform, torch.tensor(0.5)).sum().backward()
+    assert bool(torch.isfinite(leaf.grad).all()) and float(leaf.grad.abs().sum()) > 0
+
+
+def test_annealed_rounding_gives_a_decodable_bitstream_that_fits_the_context_better():
+    model = tiny_coding_model(0)
+    images, cameras = _scene()
+    amortised = model.encode_scene(images, cameras, LAM)
+    encoded = model.encode_scene(images, cameras, LAM, steps=12, seed=1, rdo_settings={"rounding": "annealed"})
+    checks = {c.step: c for c in encoded.rdo.checks}
+    assert encoded.rdo.best_step > 0 and checks[encoded.rdo.best_step].loss < checks[0].loss
+    assert _context_mse(model, encoded.data, images, cameras) < _context_mse(model, amortised.data, images, cameras)
+    assert rdo.annealing_temperature(rdo.RDOConfig(steps=10, rounding="annealed"), 0, 0.0) == pytest.approx(0.5)
+    assert rdo.annealing_temperature(rdo.RDOConfig(steps=10, rounding="annealed"), 10, 0.0) == pytest.approx(0.05)
+    assert rdo.annealing_temperature(rdo.RDOConfig(steps=10), 5, 0.0) is None
+    with pytest.raises(InputError, match="rounding"):
+        rdo.RDOConfig(steps=2, rounding="gumbel")
 
 
 def test_the_feature_variable_needs_the_feature_and_no_latent_anchor():
@@ -235,25 +275,26 @@ def test_the_feature_variable_needs_the_feature_and_no_latent_anchor():
 
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU visible to torch")
-@pytest.mark.parametrize("variable", ["latents", "feature"])
-def test_the_graphed_decoder_gives_the_eager_loss_and_gradients(variable):
+@pytest.mark.parametrize("variable, rounding", [("latents", "noise"), ("feature", "noise"), ("latents", "annealed")])
+def test_the_graphed_decoder_gives_the_eager_loss_and_gradients(variable, rounding):
     model = tiny_coding_model(5).cuda()
     images, cameras = _scene(13)
     images, cameras = images.cuda(), cameras.to(device="cuda")
     with torch.no_grad():
         feature = model(images, cameras)["F_c"]
     start = model.codec.compress(feature, LAM, reconstruct=True)
-    config = rdo.RDOConfig(steps=1, variable=variable)
+    config = rdo.RDOConfig(steps=rdo.GRAPH_MIN_STEPS, variable=variable, rounding=rounding)
     target = rdo.rdo_target(model, images, cameras, LAM, start, config)
     model.requires_grad_(False)
     model.train()
     latents = rdo.start_variables(start, config, feature)
     with validation(False):
-        decoder = rdo.GraphedDecoder(model, target, latents, variable)  # a failed capture raises here
+        decoder = rdo.GraphedDecoder(model, target, latents, variable, rounding == "annealed")  # raises here
     assert isinstance(rdo.step_decoder(model, target, latents, config), rdo.GraphedDecoder)
-    for trial in range(3):  # replays with new latents and new noise
+    for trial in range(3):  # replays with new latents, new noise and (annealed) a new temperature
+        temperature = rdo.annealing_temperature(config, trial, 0.0)
         (eager, eager_grads), (graphed, graphed_grads) = [
-            _loss_and_gradients(model, latents, target, config, trial, d) for d in (None, decoder)]
+            _loss_and_gradients(model, latents, target, config, trial, d, temperature) for d in (None, decoder)]
         assert float(graphed) == pytest.approx(float(eager), rel=1e-4)
         for a, b in zip(eager_grads, graphed_grads):
             assert float((a - b).norm()) <= 1e-3 * float(a.norm()) + 1e-9
@@ -262,7 +303,7 @@ def test_the_graphed_decoder_gives_the_eager_loss_and_gradients(variable):
                 z.add_(torch.randn_like(z))
 
 
-def _loss_and_gradients(model, latents, target, config, seed, decoder):
+def _loss_and_gradients(model, latents, target, config, seed, decoder, temperature):
     generator = torch.Generator(device="cuda").manual_seed(seed)
-    loss, _ = rdo.rdo_loss(model, latents, target, config, generator, decoder=decoder)
+    loss, _ = rdo.rdo_loss(model, latents, target, config, generator, decoder=decoder, temperature=temperature)
     return loss.detach(), torch.autograd.grad(loss, latents)

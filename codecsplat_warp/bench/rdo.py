@@ -294,7 +294,7 @@ def profile_step(model, sample: Sample, lam: float, settings: dict, steps: int, 
     from torch.profiler import ProfilerActivity, profile
 
     sample = sample.to(device)
-    config = rdo_config("fast", 1, None, 0, **settings)
+    config = rdo_config("fast", steps + 4, None, 0, **settings)  # the run below: 3 warm-up, timed, 1 profiled
     with torch.no_grad():
         feature = model(sample.context_images, sample.context_cameras)["F_c"]
         start = model.codec.compress(feature, lam, reconstruct=True)

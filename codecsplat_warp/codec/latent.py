@@ -320,31 +320,61 @@ def _at_least_float32(t: torch.Tensor) -> torch.Tensor:
 class NoisyQuantizer:
     """Training: rate at ``z + U(-0.5, 0.5)``, decoder input ``round(z - mu) + mu`` (straight-through).
 
+    With a ``temperature``, annealed rounding instead (stochastic Gumbel annealing, Yang et al. 2020, "Improving
+    Inference for Neural Image Compression"): each residual ``r`` becomes ``floor(r) + y``, ``y`` a relaxed Bernoulli
+    sample (binary Concrete) of rounding up, whose log-odds are ``(atanh(a) - atanh(1 - a)) / T`` for ``a = r -
+    floor(r)``, at temperature ``T``; the decoder and the rate both see it. As ``T`` falls to 0 it becomes the
+    coder's rounding (a coin flip only at exactly half-way).
+
     Args:
         generator: the noise's random generator, on the latents' device (None: torch's global one).
         noise: per level, U(0, 1) samples drawn beforehand (float32, each of its latent's shape) to use instead of
             drawing them (a CUDA graph replays the pass with new samples in the same tensors).
+        temperature: None, or the annealing temperature T > 0 (a 0-dim float32 tensor on the latents' device, so
+            that a CUDA graph reads its current value).
 
     Attributes:
         bits: per level, the estimated bits of each view [V] (float32, differentiable).
     """
 
-    def __init__(self, generator: torch.Generator | None = None, noise: list[torch.Tensor] | None = None):
+    def __init__(self, generator: torch.Generator | None = None, noise: list[torch.Tensor] | None = None,
+                 temperature: torch.Tensor | None = None):
         self.bits: list[torch.Tensor] = []
         self.generator = generator
         self.noise = noise
+        self.temperature = temperature
 
     def __call__(self, level: int, z, mean, log_scale):
         residual = z.float() - mean.float()
-        rounded = residual + (torch.round(residual) - residual).detach()
         if self.noise is not None:
             noise = self.noise[level]
         else:
             noise = torch.rand(residual.shape, generator=self.generator, device=residual.device,
                                dtype=residual.dtype)
+        if self.temperature is not None:
+            quantized = annealed_rounding(residual, noise, self.temperature)
+            self.bits.append(entropy.gaussian_bits(quantized, log_scale.float().exp()).sum(dim=(1, 2, 3)))
+            return mean.float() + quantized
+        rounded = residual + (torch.round(residual) - residual).detach()
         noisy = residual + noise - 0.5
         self.bits.append(entropy.gaussian_bits(noisy, log_scale.float().exp()).sum(dim=(1, 2, 3)))
         return mean.float() + rounded
+
+
+ANNEAL_EDGE = 1e-4
+"""How close to an integer the fractional part is clamped in :func:`annealed_rounding` (atanh stays finite)."""
+
+
+def annealed_rounding(residual: torch.Tensor, uniform: torch.Tensor, temperature: torch.Tensor) -> torch.Tensor:
+    """The relaxed rounding of :class:`NoisyQuantizer` with a temperature: ``floor(r) + sigmoid((logit + L) / T)``
+    with ``logit = (atanh(a) - atanh(1 - a)) / T``, ``a`` the fractional part of ``r`` and ``L = log(u) -
+    log(1 - u)`` logistic noise from the U(0, 1) samples ``uniform``; differentiable in ``residual``."""
+    low = torch.floor(residual).detach()
+    fraction = (residual - low).clamp(ANNEAL_EDGE, 1.0 - ANNEAL_EDGE)
+    u = uniform.clamp(ANNEAL_EDGE, 1.0 - ANNEAL_EDGE)
+    logistic = torch.log(u) - torch.log1p(-u)
+    logit = (torch.atanh(fraction) - torch.atanh(1.0 - fraction)) / temperature
+    return low + torch.sigmoid((logit + logistic) / temperature)
 
 
 class RoundingQuantizer:
@@ -508,31 +538,33 @@ class LatentCodec(nn.Module):
         return missing
 
     def forward(self, feature: torch.Tensor, lam: float, generator: torch.Generator | None = None,
-                noise: list[torch.Tensor] | None = None, lambda_embedding: torch.Tensor | None = None
-                ) -> CodecOutput:
+                noise: list[torch.Tensor] | None = None, lambda_embedding: torch.Tensor | None = None,
+                temperature: torch.Tensor | None = None) -> CodecOutput:
         """Differentiable pass: F_c [V,C_F,h,w] -> :class:`CodecOutput`. In training mode the quantisation
         is noisy (:class:`NoisyQuantizer`), in eval mode it is the coder's (:class:`RoundingQuantizer`).
-        ``generator``, ``noise``, ``lambda_embedding``: as in :meth:`forward_latents`."""
+        ``generator``, ``noise``, ``lambda_embedding``, ``temperature``: as in :meth:`forward_latents`."""
         h, w = feature.shape[-2:]
         lam = check_lambda(lam)
         emb = self.embedding(lam) if lambda_embedding is None else lambda_embedding
         encoded = self.analysis(self._pad(feature), emb)
-        quantizer = NoisyQuantizer(generator, noise) if self.training else RoundingQuantizer()
+        quantizer = NoisyQuantizer(generator, noise, temperature) if self.training else RoundingQuantizer()
         x = self.top_down(emb, lam, feature.shape[0], latent_shapes(self.config, h, w), encoded, quantizer)
         return CodecOutput(self.synthesis(x, emb)[..., :h, :w], torch.stack(quantizer.bits).sum(0))
 
     def forward_latents(self, latents: list[torch.Tensor], lam: float, height: int, width: int,
                         generator: torch.Generator | None = None, noise: list[torch.Tensor] | None = None,
-                        lambda_embedding: torch.Tensor | None = None) -> CodecOutput:
+                        lambda_embedding: torch.Tensor | None = None,
+                        temperature: torch.Tensor | None = None) -> CodecOutput:
         """Differentiable pass from given latents instead of the analysis and the posterior: per level, the
         posterior means on the gained grid [V,C_l,h_l,w_l] (what :meth:`compress` records in
         :attr:`CompressedLatents.latents`) -> :class:`CodecOutput` on a ``height`` x ``width`` feature grid.
         Noisy quantisation in training mode (``generator`` draws the noise, or ``noise`` gives it: see
         :class:`NoisyQuantizer`), the coder's in eval mode. ``lambda_embedding``: ``self.embedding(lam)`` computed
-        beforehand (it copies lambda to the device, which a CUDA graph capture must not do)."""
+        beforehand (it copies lambda to the device, which a CUDA graph capture must not do). ``temperature``: annealed
+        rounding instead of the noisy one in training mode (:class:`NoisyQuantizer`)."""
         lam = check_lambda(lam)
         emb = self.embedding(lam) if lambda_embedding is None else lambda_embedding
-        quantizer = NoisyQuantizer(generator, noise) if self.training else RoundingQuantizer()
+        quantizer = NoisyQuantizer(generator, noise, temperature) if self.training else RoundingQuantizer()
         shapes = latent_shapes(self.config, height, width)
         x = self.top_down(emb, lam, latents[0].shape[0], shapes, None, quantizer, latents)
         return CodecOutput(self.synthesis(x, emb)[..., :height, :width], torch.stack(quantizer.bits).sum(0))

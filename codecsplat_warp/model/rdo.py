@@ -109,6 +109,11 @@ class RDOConfig:
             encoder's F_c, through the codec's analysis and posterior; :func:`optimise_latents` then needs it).
         feature_step: with ``variable="feature"``, Adam's start step as a fraction of the amortised F_c's standard
             deviation (``learning_rate`` is the step for the latents).
+        rounding: the training quantiser's: ``"noise"`` (straight-through rounding to the decoder, the rate at
+            uniform noise) or ``"annealed"`` (stochastic Gumbel annealing for both, its temperature falling
+            geometrically from ``anneal_start`` to ``anneal_end`` over the run; :class:`~codecsplat_warp.codec.
+            latent.NoisyQuantizer`).
+        anneal_start, anneal_end: see ``rounding``.
     """
 
     steps: int | None = 0
@@ -126,6 +131,9 @@ class RDOConfig:
     cuda_graphs: bool = True
     variable: str = "latents"
     feature_step: float = 0.01
+    rounding: str = "noise"
+    anneal_start: float = 0.5
+    anneal_end: float = 0.05
 
     def __post_init__(self) -> None:
         if self.steps is None and self.time_budget is None:
@@ -136,7 +144,8 @@ class RDOConfig:
         if self.time_budget is not None and not (math.isfinite(self.time_budget) and self.time_budget > 0):
             raise InputError(f"the RDO time budget must be a number of seconds > 0, got {self.time_budget!r}")
         positive = {"learning_rate": self.learning_rate, "final_lr_fraction": self.final_lr_fraction,
-                    "feature_step": self.feature_step}
+                    "feature_step": self.feature_step, "anneal_start": self.anneal_start,
+                    "anneal_end": self.anneal_end}
         for name, value in positive.items():
             if not (math.isfinite(value) and value > 0):
                 raise InputError(f"RDOConfig.{name} must be > 0, got {value!r}")
@@ -148,6 +157,8 @@ class RDOConfig:
                 raise InputError(f"RDOConfig.{name} must be >= 0, got {value!r}")
         if self.check_every < 0:
             raise InputError(f"RDOConfig.check_every must be >= 0, got {self.check_every}")
+        if self.rounding not in ("noise", "annealed"):
+            raise InputError(f"RDOConfig.rounding must be noise or annealed, got {self.rounding!r}")
         if self.variable not in VARIABLES:
             raise InputError(f"RDOConfig.variable must be one of {', '.join(VARIABLES)}, got {self.variable!r}")
         if self.variable == "feature" and self.anchor_weight > 0:
@@ -260,27 +271,30 @@ Decoded = tuple[torch.Tensor, torch.Tensor, Gaussians]
 
 
 def decode_latents(model, latents: list[torch.Tensor], target: RDOTarget, generator: torch.Generator | None = None,
-                   noise: list[torch.Tensor] | None = None, lambda_embedding: torch.Tensor | None = None) -> Decoded:
+                   noise: list[torch.Tensor] | None = None, lambda_embedding: torch.Tensor | None = None,
+                   temperature: torch.Tensor | None = None) -> Decoded:
     """The decoder from the latents (the codec's pass in the model's mode, the depth head, R_post, the GS head,
-    the 2D->3D map) -> :data:`Decoded`. ``generator``/``noise``/``lambda_embedding``: see
+    the 2D->3D map) -> :data:`Decoded`. ``generator``/``noise``/``lambda_embedding``/``temperature``: see
     :meth:`LatentCodec.forward_latents`."""
     cameras = target.cameras
     with record_function("codec"):
         coded = model.codec.forward_latents(latents, target.lam, cameras.height // FEATURE_STRIDE,
-                                            cameras.width // FEATURE_STRIDE, generator, noise, lambda_embedding)
+                                            cameras.width // FEATURE_STRIDE, generator, noise, lambda_embedding,
+                                            temperature)
     s, _, gaussians = model.decode_feature(coded.feature, cameras, target.neighbours)
     return coded.bits.sum(), s, gaussians
 
 
 def decode_variables(model, variables: list[torch.Tensor], target: RDOTarget, variable: str,
                      generator: torch.Generator | None = None, noise: list[torch.Tensor] | None = None,
-                     lambda_embedding: torch.Tensor | None = None) -> Decoded:
+                     lambda_embedding: torch.Tensor | None = None, temperature: torch.Tensor | None = None
+                     ) -> Decoded:
     """:func:`decode_latents` of the latents (``variable="latents"``: ``variables`` are the latents), or of the
     codec's pass from F_c (``"feature"``: ``variables`` is [F_c], through the analysis and the posterior)."""
     if variable == "latents":
-        return decode_latents(model, variables, target, generator, noise, lambda_embedding)
+        return decode_latents(model, variables, target, generator, noise, lambda_embedding, temperature)
     with record_function("codec"):
-        coded = model.codec(variables[0], target.lam, generator, noise, lambda_embedding)
+        coded = model.codec(variables[0], target.lam, generator, noise, lambda_embedding, temperature)
     s, _, gaussians = model.decode_feature(coded.feature, target.cameras, target.neighbours)
     return coded.bits.sum(), s, gaussians
 
@@ -303,21 +317,25 @@ class GraphedDecoder:
         target: the run's :class:`RDOTarget` (its amortised latents give the noise's shapes).
         variables: the run's optimised tensors (float32): their shapes fix the graphs'.
         variable: what they are (:attr:`RDOConfig.variable`).
-    Calling it with the optimised tensors and the generator gives :data:`Decoded`.
+        annealed: annealed rounding (:attr:`RDOConfig.rounding`), its temperature set at every call.
+    Calling it with the optimised tensors, the generator and the temperature gives :data:`Decoded`.
     """
 
     WARMUP = 3
     """Eager forward+backward passes on a side stream before the capture (cuDNN and Warp pick and load kernels)."""
 
-    def __init__(self, model, target: RDOTarget, variables: list[torch.Tensor], variable: str = "latents"):
+    def __init__(self, model, target: RDOTarget, variables: list[torch.Tensor], variable: str = "latents",
+                 annealed: bool = False):
         with torch.no_grad():
             embedding = model.codec.embedding(target.lam)
+        device = variables[0].device
+        self.temperature = torch.full((), 0.5, device=device) if annealed else None
         self.noise = [torch.rand_like(z, dtype=torch.float32) for z in target.latents]
         self.latents = [v.detach().clone().requires_grad_(True) for v in variables]
 
         def decode() -> list[torch.Tensor]:
             bits, s, g = decode_variables(model, self.latents, target, variable, noise=self.noise,
-                                          lambda_embedding=embedding)
+                                          lambda_embedding=embedding, temperature=self.temperature)
             return [bits, s, g.means, g.quats, g.scales, g.opacities, g.sh]
 
         def backward(outputs: list[torch.Tensor], grads: list[torch.Tensor]) -> tuple[torch.Tensor, ...]:
@@ -341,7 +359,10 @@ class GraphedDecoder:
         # the graphs read these by address: they must live as long as the graphs
         self.held = (target, embedding, target.cameras.memo_values(), decode)
 
-    def __call__(self, variables: list[torch.Tensor], generator: torch.Generator | None) -> Decoded:
+    def __call__(self, variables: list[torch.Tensor], generator: torch.Generator | None,
+                 temperature: float | None = None) -> Decoded:
+        if self.temperature is not None and temperature is not None:
+            self.temperature.fill_(temperature)
         for noise in self.noise:
             noise.copy_(torch.rand(noise.shape, generator=generator, device=noise.device, dtype=noise.dtype))
         bits, s, *fields_ = _ReplayDecoder.apply(self, *variables)
@@ -372,16 +393,28 @@ class _ReplayDecoder(torch.autograd.Function):
         return (None, *(g.clone() for g in graphs.grads))
 
 
+GRAPH_MIN_STEPS = 16
+"""Runs of fewer steps stay eager: the capture costs about as much as a dozen steps save (2 views on an H200:
+0.25 s for 5 graphed steps against 0.19 s eager)."""
+
+
+def uses_cuda_graphs(config: RDOConfig, device: torch.device) -> bool:
+    """Whether a run of ``config`` on ``device`` replays the decoder as CUDA graphs: on CUDA, in float32, with
+    ``config.cuda_graphs``, and with at least :data:`GRAPH_MIN_STEPS` steps (or a time budget alone)."""
+    long_enough = config.steps is None or config.steps >= GRAPH_MIN_STEPS
+    return config.cuda_graphs and config.precision == "float32" and device.type == "cuda" and long_enough
+
+
 def step_decoder(model, target: RDOTarget, variables: list[torch.Tensor], config: RDOConfig
                  ) -> GraphedDecoder | None:
-    """The decoder that :func:`rdo_step` should use: a :class:`GraphedDecoder` on CUDA in float32 with
-    ``config.cuda_graphs``, else None (the eager :func:`decode_latents`). The model must be in training mode
-    with its parameters frozen. A capture that fails falls back to eager, with a warning."""
-    if not (config.cuda_graphs and config.precision == "float32" and target.images.device.type == "cuda"):
+    """The decoder that :func:`rdo_step` should use: a :class:`GraphedDecoder` when :func:`uses_cuda_graphs`,
+    else None (the eager :func:`decode_variables`). The model must be in training mode with its parameters
+    frozen. A capture that fails falls back to eager, with a warning."""
+    if not uses_cuda_graphs(config, target.images.device):
         return None
     try:
         with validation(False):
-            return GraphedDecoder(model, target, variables, config.variable)
+            return GraphedDecoder(model, target, variables, config.variable, config.rounding == "annealed")
     except RuntimeError as error:
         warnings.warn(f"RDO runs without CUDA graphs: capturing the decoder failed ({error})", RuntimeWarning,
                       stacklevel=2)
@@ -390,13 +423,13 @@ def step_decoder(model, target: RDOTarget, variables: list[torch.Tensor], config
 
 def rdo_loss(model, variables: list[torch.Tensor], target: RDOTarget, config: RDOConfig,
              generator: torch.Generator | None = None, compressed: CompressedLatents | None = None,
-             decoder: GraphedDecoder | None = None) -> tuple[torch.Tensor, dict]:
+             decoder: GraphedDecoder | None = None, temperature: float | None = None) -> tuple[torch.Tensor, dict]:
     """The loss of the module docstring and its parts (``mse``, ``cross``, ``depth``, ``bpp`` as 0-dim tensors).
 
     ``variables``: the optimised tensors (:attr:`RDOConfig.variable`). With ``compressed`` (a real coding of
     them), its decoder feature and discrete-model bits replace the
     training quantiser's: the loss the encoder measures at a check. ``decoder`` replaces :func:`decode_latents`
-    (:func:`step_decoder`).
+    (:func:`step_decoder`). ``temperature``: of annealed rounding (:attr:`RDOConfig.rounding`; None: noisy).
     """
     cameras, images = target.cameras, target.images
     autocast = torch.autocast(images.device.type, dtype=torch.bfloat16,
@@ -406,9 +439,11 @@ def rdo_loss(model, variables: list[torch.Tensor], target: RDOTarget, config: RD
             bits = compressed.bits.sum().to(images.device, torch.float32)
             s, _, gaussians = model.decode_feature(compressed.feature, cameras, target.neighbours)
         elif decoder is not None:
-            bits, s, gaussians = decoder(variables, generator)
+            bits, s, gaussians = decoder(variables, generator, temperature)
         else:
-            bits, s, gaussians = decode_variables(model, variables, target, config.variable, generator)
+            annealing = None if temperature is None else torch.full((), temperature, device=images.device)
+            bits, s, gaussians = decode_variables(model, variables, target, config.variable, generator,
+                                                  temperature=annealing)
     rgb = model.render(gaussians, cameras, depth_range=target.depth_range)["rgb"]
     with record_function("loss"):
         parts = {"mse": F.mse_loss(rgb, images), "bpp": bits.float() / images[:, 0].numel()}
@@ -458,17 +493,29 @@ def _psnr(mse: float) -> float:
     return -10.0 * math.log10(max(mse, 1e-12))
 
 
-def _learning_rate(config: RDOConfig, start: float, step: int, elapsed: float) -> float:
-    """The cosine schedule from ``start`` at ``step`` / ``elapsed`` seconds (the further along of the two
-    decides)."""
+def _progress(config: RDOConfig, step: int, elapsed: float) -> float:
+    """How far along the run is, in [0, 1]: by ``step`` or by ``elapsed`` seconds, whichever is further."""
     done = 0.0
     if config.steps:
         done = step / config.steps
     if config.time_budget:
         done = max(done, elapsed / config.time_budget)
-    done = min(done, 1.0)
+    return min(done, 1.0)
+
+
+def _learning_rate(config: RDOConfig, start: float, step: int, elapsed: float) -> float:
+    """The cosine schedule from ``start`` at ``step`` / ``elapsed`` seconds."""
+    done = _progress(config, step, elapsed)
     floor = config.final_lr_fraction
     return start * (floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * done)))
+
+
+def annealing_temperature(config: RDOConfig, step: int, elapsed: float) -> float | None:
+    """The temperature of annealed rounding at ``step`` / ``elapsed`` seconds (geometric from ``anneal_start``
+    to ``anneal_end``), or None with ``rounding="noise"``."""
+    if config.rounding != "annealed":
+        return None
+    return config.anneal_start * (config.anneal_end / config.anneal_start) ** _progress(config, step, elapsed)
 
 
 def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, start: CompressedLatents,
@@ -532,7 +579,8 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
                         break
                     for group in optimiser.param_groups:
                         group["lr"] = _learning_rate(config, first_lr, step, elapsed)
-                    rdo_step(model, variables, optimiser, target, config, generator, decoder)
+                    rdo_step(model, variables, optimiser, target, config, generator, decoder,
+                             annealing_temperature(config, step, elapsed))
                     step += 1
                     _advance(bar, config, step, began)
                     if config.check_every and step % config.check_every == 0 and step != config.steps:
@@ -581,13 +629,14 @@ def latent_optimiser(variables: list[torch.Tensor], config: RDOConfig) -> torch.
 
 
 def rdo_step(model, variables: list[torch.Tensor], optimiser: torch.optim.Optimizer, target: RDOTarget,
-             config: RDOConfig, generator: torch.Generator | None, decoder: GraphedDecoder | None = None) -> None:
+             config: RDOConfig, generator: torch.Generator | None, decoder: GraphedDecoder | None = None,
+             temperature: float | None = None) -> None:
     """One optimisation step of the optimised tensors ``variables`` in place (training quantiser; no host
     synchronisation of its own): loss, backward, non-finite gradients zeroed, Adam, clamp to
-    +-:data:`LATENT_LIMIT`. ``decoder``: see :func:`step_decoder`."""
+    +-:data:`LATENT_LIMIT`. ``decoder``: see :func:`step_decoder`; ``temperature``: see :func:`rdo_loss`."""
     model.train()
     optimiser.zero_grad(set_to_none=True)
-    loss, _ = rdo_loss(model, variables, target, config, generator, decoder=decoder)
+    loss, _ = rdo_loss(model, variables, target, config, generator, decoder=decoder, temperature=temperature)
     loss.backward()
     with record_function("optimiser"), torch.no_grad():
         for v in variables:
