@@ -309,8 +309,7 @@ class GraphedDecoder:
     optimiser stay eager. Inputs are copied into the graphs' static tensors and outputs and gradients are copied
     out of them, so nothing outside aliases the graphs' memory; what the graphs read outside their own memory (the
     lambda embedding, the cameras, their memoized kernel arrays, the neighbours) lives as long as they do. The
-    quantiser's noise is drawn outside the graphs
-    by the run's generator, in the eager decoder's order.
+    quantiser's noise is drawn outside the graphs by the run's generator, in the eager decoder's order.
 
     Args:
         model: the frozen model (training mode, parameters without gradients), on CUDA.
@@ -331,15 +330,15 @@ class GraphedDecoder:
         device = variables[0].device
         self.temperature = torch.full((), 0.5, device=device) if annealed else None
         self.noise = [torch.rand_like(z, dtype=torch.float32) for z in target.latents]
-        self.latents = [v.detach().clone().requires_grad_(True) for v in variables]
+        self.variables = [v.detach().clone().requires_grad_(True) for v in variables]
 
         def decode() -> list[torch.Tensor]:
-            bits, s, g = decode_variables(model, self.latents, target, variable, noise=self.noise,
+            bits, s, g = decode_variables(model, self.variables, target, variable, noise=self.noise,
                                           lambda_embedding=embedding, temperature=self.temperature)
             return [bits, s, g.means, g.quats, g.scales, g.opacities, g.sh]
 
         def backward(outputs: list[torch.Tensor], grads: list[torch.Tensor]) -> tuple[torch.Tensor, ...]:
-            return torch.autograd.grad(outputs, self.latents, grads, allow_unused=True)
+            return torch.autograd.grad(outputs, self.variables, grads, allow_unused=True)
 
         side = torch.cuda.Stream()
         side.wait_stream(torch.cuda.current_stream())
@@ -355,7 +354,7 @@ class GraphedDecoder:
         self.output_grads = [torch.zeros_like(o) for o in self.outputs]
         with torch.cuda.graph(self.backward_graph, pool=self.forward_graph.pool()):
             grads = backward(self.outputs, self.output_grads)
-        self.grads = [torch.zeros_like(z) if g is None else g for z, g in zip(self.latents, grads)]
+        self.grads = [torch.zeros_like(z) if g is None else g for z, g in zip(self.variables, grads)]
         # the graphs read these by address: they must live as long as the graphs
         self.held = (target, embedding, target.cameras.memo_values(), decode)
 
@@ -370,13 +369,13 @@ class GraphedDecoder:
 
 
 class _ReplayDecoder(torch.autograd.Function):
-    """The autograd face of :class:`GraphedDecoder`: forward replays its forward graph on copies of the latents,
-    backward its backward graph on copies of the outputs' gradients."""
+    """The autograd face of :class:`GraphedDecoder`: forward replays its forward graph on copies of the optimised
+    tensors, backward its backward graph on copies of the outputs' gradients."""
 
     @staticmethod
-    def forward(ctx, graphs: GraphedDecoder, *latents: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        for static, z in zip(graphs.latents, latents):
-            static.detach().copy_(z)
+    def forward(ctx, graphs: GraphedDecoder, *variables: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        for static, v in zip(graphs.variables, variables):
+            static.detach().copy_(v)
         graphs.forward_graph.replay()
         ctx.graphs = graphs
         return tuple(o.detach().clone() for o in graphs.outputs)
