@@ -187,12 +187,12 @@ def test_noise_given_to_the_quantiser_is_the_noise_it_would_draw():
     target = rdo.rdo_target(model, images, cameras, LAM, start, rdo.RDOConfig(steps=1))
     model.train()
     with torch.no_grad():
-        drawn = rdo.decode_latents(model, start.latents, target, torch.Generator().manual_seed(4))
+        drawn = rdo.decode_variables(model, start.latents, target, "latents", torch.Generator().manual_seed(4))
         generator = torch.Generator().manual_seed(4)
         noise = [torch.rand(z.shape, generator=generator) for z in start.latents]
-        given = rdo.decode_latents(model, start.latents, target, noise=noise,
-                                   lambda_embedding=model.codec.embedding(LAM))
-        other = rdo.decode_latents(model, start.latents, target, torch.Generator().manual_seed(5))
+        given = rdo.decode_variables(model, start.latents, target, "latents", noise=noise,
+                                     lambda_embedding=model.codec.embedding(LAM))
+        other = rdo.decode_variables(model, start.latents, target, "latents", torch.Generator().manual_seed(5))
     assert torch.equal(drawn[0], given[0]) and torch.equal(drawn[1], given[1])
     assert torch.equal(drawn[2].means, given[2].means) and torch.equal(drawn[2].sh, given[2].sh)
     assert not torch.equal(drawn[0], other[0])  # the noise reaches the rate

@@ -23,7 +23,6 @@ synchronisation and Python time). The median wall time of ``--profile-steps`` un
 from __future__ import annotations
 
 import argparse
-import math
 import pathlib
 import statistics
 import sys
@@ -41,8 +40,8 @@ from ..measure import format_table, machine_name, synchronize
 from ..metrics import LPIPS
 from ..metrics.image import ImageMetrics
 from ..model import pretrained
-from ..model.rdo import (RDOConfig, latent_optimiser, other_views_gaussians, rdo_config, rdo_step, rdo_target,
-                         start_variables, step_decoder)
+from ..model.rdo import (RDOConfig, latent_optimiser, other_views_gaussians, psnr_of_mse, rdo_config, rdo_step,
+                         rdo_target, start_variables, step_decoder)
 from .options import RDO_PROFILE_PARTS
 
 METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
@@ -169,7 +168,7 @@ def bench_sample(model, sample: Sample, lambdas: list[float], steps: list[int], 
     """Rows of one sample: the references (copy-nearest, codec-free) and one per (lambda, steps); with
     ``trajectory``, each RDO row also scores the targets at every check of the run (``row["trajectory"]``)."""
     def score(rgb: torch.Tensor) -> dict:
-        return {k: statistics.fmean(v) for k, v in metrics(rgb, sample.target_images).items()}
+        return _target_scores(metrics, rgb, sample)
 
     base = {"scene": sample.scene, "context": sample.context, "target": sample.target}
     copy = nearest_context_images(sample.context_images, sample.context_cameras, sample.target_cameras)
@@ -195,8 +194,7 @@ def bench_sample(model, sample: Sample, lambdas: list[float], steps: list[int], 
                 scene = model.decode_scene(encoded.data)
                 rgb = model.render(scene.gaussians, sample.target_cameras)["rgb"]
                 own = model.render(scene.gaussians, sample.context_cameras)["rgb"]
-            context_psnr = -10 * math.log10(max(float((own.clamp(0, 1) - sample.context_images).square().mean()),
-                                                1e-12))
+            context_psnr = psnr_of_mse(float((own.clamp(0, 1) - sample.context_images).square().mean()))
             row = {**base, "method": "codecsplat", "lambda": lam, "steps": count, "seconds": seconds,
                    "bytes": len(encoded.data), "context_psnr": context_psnr, **score(rgb)}
             if encoded.rdo is not None:
@@ -223,15 +221,20 @@ def _trajectory_hook(model, sample: Sample, metrics: ImageMetrics, checks: list[
     def hook(check, compressed) -> None:
         gaussians = model.decode_feature(compressed.feature, cameras)[2]
         rgb = model.render(gaussians, sample.target_cameras)["rgb"]
-        scores = {k: statistics.fmean(v) for k, v in metrics(rgb, sample.target_images).items()}
+        scores = _target_scores(metrics, rgb, sample)
         cross = []
         for v, others in enumerate(other_views_gaussians(gaussians, cameras.num_views)):
             own = model.render(others, cameras.select([v]))["rgb"]
             cross.append(float((own.clamp(0, 1) - images[v:v + 1]).square().mean()))
         checks.append({**vars(check), **{f"target_{k}": v for k, v in scores.items()},
-                       "cross_psnr": -10 * math.log10(max(statistics.fmean(cross), 1e-12))})
+                       "cross_psnr": psnr_of_mse(statistics.fmean(cross))})
 
     return hook
+
+
+def _target_scores(metrics: ImageMetrics, rgb: torch.Tensor, sample: Sample) -> dict[str, float]:
+    """Each metric of ``rgb`` [T,3,H,W] against the sample's target images, averaged over the targets."""
+    return {k: statistics.fmean(v) for k, v in metrics(rgb, sample.target_images).items()}
 
 
 def summarize(rows: list[dict]) -> list[dict]:

@@ -270,32 +270,24 @@ Decoded = tuple[torch.Tensor, torch.Tensor, Gaussians]
 """What the decoder makes of the latents: (estimated bits of all views, 0-dim; S [V,H,W]; the Gaussians)."""
 
 
-def decode_latents(model, latents: list[torch.Tensor], target: RDOTarget, generator: torch.Generator | None = None,
-                   noise: list[torch.Tensor] | None = None, lambda_embedding: torch.Tensor | None = None,
-                   temperature: torch.Tensor | None = None) -> Decoded:
-    """The decoder from the latents (the codec's pass in the model's mode, the depth head, R_post, the GS head,
-    the 2D->3D map) -> :data:`Decoded`. ``generator``/``noise``/``lambda_embedding``/``temperature``: see
-    :meth:`LatentCodec.forward_latents`."""
-    cameras = target.cameras
-    with record_function("codec"):
-        coded = model.codec.forward_latents(latents, target.lam, cameras.height // FEATURE_STRIDE,
-                                            cameras.width // FEATURE_STRIDE, generator, noise, lambda_embedding,
-                                            temperature)
-    s, _, gaussians = model.decode_feature(coded.feature, cameras, target.neighbours)
-    return coded.bits.sum(), s, gaussians
-
-
 def decode_variables(model, variables: list[torch.Tensor], target: RDOTarget, variable: str,
                      generator: torch.Generator | None = None, noise: list[torch.Tensor] | None = None,
                      lambda_embedding: torch.Tensor | None = None, temperature: torch.Tensor | None = None
                      ) -> Decoded:
-    """:func:`decode_latents` of the latents (``variable="latents"``: ``variables`` are the latents), or of the
-    codec's pass from F_c (``"feature"``: ``variables`` is [F_c], through the analysis and the posterior)."""
-    if variable == "latents":
-        return decode_latents(model, variables, target, generator, noise, lambda_embedding, temperature)
+    """The decoder from the optimised tensors -> :data:`Decoded`: the codec's pass in the model's mode from the
+    latents (``variable="latents"``: ``variables`` are the latents, :meth:`LatentCodec.forward_latents`) or from
+    F_c (``"feature"``: ``variables`` is [F_c], through the analysis and the posterior), then the depth head,
+    R_post, the GS head and the 2D->3D map. ``generator``/``noise``/``lambda_embedding``/``temperature``: see
+    :meth:`LatentCodec.forward_latents`."""
+    cameras = target.cameras
     with record_function("codec"):
-        coded = model.codec(variables[0], target.lam, generator, noise, lambda_embedding, temperature)
-    s, _, gaussians = model.decode_feature(coded.feature, target.cameras, target.neighbours)
+        if variable == "latents":
+            coded = model.codec.forward_latents(variables, target.lam, cameras.height // FEATURE_STRIDE,
+                                                cameras.width // FEATURE_STRIDE, generator, noise, lambda_embedding,
+                                                temperature)
+        else:
+            coded = model.codec(variables[0], target.lam, generator, noise, lambda_embedding, temperature)
+    s, _, gaussians = model.decode_feature(coded.feature, cameras, target.neighbours)
     return coded.bits.sum(), s, gaussians
 
 
@@ -383,11 +375,8 @@ class _ReplayDecoder(torch.autograd.Function):
     @staticmethod
     def backward(ctx, *grads: torch.Tensor):
         graphs = ctx.graphs
-        for static, g in zip(graphs.output_grads, grads):
-            if g is None:
-                static.zero_()
-            else:
-                static.copy_(g)
+        for static, g in zip(graphs.output_grads, grads):  # autograd gives zeros for an unused output
+            static.copy_(g)
         graphs.backward_graph.replay()
         return (None, *(g.clone() for g in graphs.grads))
 
@@ -427,7 +416,7 @@ def rdo_loss(model, variables: list[torch.Tensor], target: RDOTarget, config: RD
 
     ``variables``: the optimised tensors (:attr:`RDOConfig.variable`). With ``compressed`` (a real coding of
     them), its decoder feature and discrete-model bits replace the
-    training quantiser's: the loss the encoder measures at a check. ``decoder`` replaces :func:`decode_latents`
+    training quantiser's: the loss the encoder measures at a check. ``decoder`` replaces :func:`decode_variables`
     (:func:`step_decoder`). ``temperature``: of annealed rounding (:attr:`RDOConfig.rounding`; None: noisy).
     """
     cameras, images = target.cameras, target.images
@@ -488,7 +477,8 @@ def other_views_gaussians(gaussians: Gaussians, views: int) -> list[Gaussians]:
                          for name in names}) for v in range(views)]
 
 
-def _psnr(mse: float) -> float:
+def psnr_of_mse(mse: float) -> float:
+    """PSNR in dB (peak 1) of a mean squared error, at most 120 dB."""
     return -10.0 * math.log10(max(mse, 1e-12))
 
 
@@ -667,7 +657,7 @@ def _measure(model, compressed: CompressedLatents, target: RDOTarget, config: RD
     model.eval()
     measured = replace(config, precision="float32")
     loss, parts = rdo_loss(model, compressed.latents, target, measured, compressed=compressed)
-    return RDOCheck(step, seconds, float(loss), _psnr(float(parts["mse"])), float(compressed.bits.sum()))
+    return RDOCheck(step, seconds, float(loss), psnr_of_mse(float(parts["mse"])), float(compressed.bits.sum()))
 
 
 def _progress_bar(config: RDOConfig, progress: bool):
