@@ -54,7 +54,7 @@ import statistics
 import sys
 import time
 from dataclasses import MISSING, asdict, dataclass, fields, replace
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Iterator, NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -410,9 +410,7 @@ def evaluate(model, config: EvalConfig, device: torch.device,
             frames the data does not have; results.json of another evaluation in ``out`` (with ``resume``); a
             ``mvs_depth`` that is not a folder, or a corrupt ``depth.json`` or depth PNG in it.
     """
-    protocol, png = check_config(config)
-    image_codecs = _image_codecs(config)
-    rdo = _rdo_settings(config)
+    protocol, png, image_codecs, rdo = check_config(config)
     reference = ReferenceDepth(config.mvs_depth) if config.mvs_depth else None
     metrics = ImageMetrics(config.lpips_weights, device)
     plan = _plan(config, protocol, model)
@@ -455,9 +453,18 @@ def evaluate(model, config: EvalConfig, device: torch.device,
     return write_results(header, rows, config.mvs_depth, notes)
 
 
-def check_config(config: EvalConfig) -> tuple[Protocol, PngCompression]:
-    """The protocol of ``config`` (its target-view count and size applied) and its PNG baseline, once every option
-    that needs no data is checked.
+class CheckedConfig(NamedTuple):
+    """What :func:`check_config` makes of an :class:`EvalConfig`: the ``protocol`` (its target-view count and size
+    applied), the ``png`` baseline, the ``image_codecs`` rows and the ``rdo`` settings."""
+
+    protocol: Protocol
+    png: PngCompression
+    image_codecs: list[ImageCodec]
+    rdo: list[RDOSetting]
+
+
+def check_config(config: EvalConfig) -> CheckedConfig:
+    """Every option of ``config`` that needs no data, checked, and what the evaluation builds from them.
 
     Raises:
         InputError: unknown protocol or baseline, empty lambda list, a lambda outside [16, 1024], bad size,
@@ -471,9 +478,8 @@ def check_config(config: EvalConfig) -> tuple[Protocol, PngCompression]:
         raise InputError("give at least one lambda")
     for lam in config.lambdas:
         check_lambda(lam)
-    _image_codecs(config)
-    _rdo_settings(config)
-    return protocol, PngCompression(sh_clusters=config.png_sh_clusters, kmeans_iterations=config.kmeans_iterations)
+    png = PngCompression(sh_clusters=config.png_sh_clusters, kmeans_iterations=config.kmeans_iterations)
+    return CheckedConfig(protocol, png, _image_codecs(config), _rdo_settings(config))
 
 
 def no_samples_error(config: EvalConfig, protocol: Protocol, skipped: list[dict]) -> NoSamplesError:
@@ -583,7 +589,7 @@ def plan_scenes(config: EvalConfig) -> list[str]:
     Raises:
         InputError, DataError: as :func:`evaluate`, for bad options or data.
     """
-    protocol, _ = check_config(config)
+    protocol = check_config(config).protocol
     if is_chunk_folder(config.data) or config.index:
         return list(dict.fromkeys(key[0] for key in _plan(config, protocol, None).keys))
     paths = select_scenes(find_scenes(config.data), tuple(sorted(config.scenes)))

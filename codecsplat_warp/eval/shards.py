@@ -385,7 +385,7 @@ def _merge(config: EvalConfig, device: torch.device, scenes: list[str], shards: 
     samples = sorted(((position[key[0]], number, k, key) for k, result in enumerate(results)
                       for number, key in enumerate(result["plan"], 1)), key=lambda s: s[:2])
     skipped = sorted((s for result in results for s in result["skipped"]), key=lambda s: position[s["scene"]])
-    protocol, _ = check_config(config)
+    protocol = check_config(config).protocol
     if not samples:
         raise no_samples_error(config, protocol, skipped)
     out = pathlib.Path(config.out)
