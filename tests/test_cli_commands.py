@@ -42,6 +42,15 @@ def write_scene(folder: pathlib.Path, seed: int, views: int = 6) -> pathlib.Path
     return folder
 
 
+def write_indexed_scenes(root: pathlib.Path, index: dict, views: int) -> pathlib.Path:
+    """``root/data/<name>`` for every scene of ``index`` (procedural, seeds 1, 2, ... in its order, ``views`` views
+    each) and ``root/index.json`` holding ``index``; returns ``root``."""
+    for seed, name in enumerate(index, 1):
+        write_scene(root / "data" / name, seed=seed, views=views)
+    (root / "index.json").write_text(json.dumps(index))
+    return root
+
+
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory) -> pathlib.Path:
     """A folder with ``tiny.safetensors`` (random tiny model with codec) and ``scenes/{a,b}``."""

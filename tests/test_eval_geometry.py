@@ -25,7 +25,7 @@ from codecsplat_warp.metrics.image import ImageMetrics
 from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.nn.config import get_preset
 from codecsplat_warp.ops.geometry import unproject
-from test_cli_commands import HEIGHT, WIDTH, write_scene
+from test_cli_commands import HEIGHT, WIDTH, write_indexed_scenes
 
 INDEX = {"a": {"context": [0, 2], "target": [1]}, "b": {"context": [1, 3], "target": [2]}}
 """Two samples; the reference depth folder has scene a only."""
@@ -77,10 +77,7 @@ def write_reference(folder, files: dict[str, np.ndarray], scale: float = 1e-3, e
 def scenes(tmp_path_factory):
     """Scene folders a and b (4 views, 48x32) and the index of :data:`INDEX`."""
     root = tmp_path_factory.mktemp("geometry")
-    write_scene(root / "data" / "a", seed=1, views=4)
-    write_scene(root / "data" / "b", seed=2, views=4)
-    (root / "index.json").write_text(json.dumps(INDEX))
-    return root
+    return write_indexed_scenes(root, INDEX, views=4)
 
 
 def _samples(scenes) -> list[Sample]:

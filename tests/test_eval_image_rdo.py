@@ -24,7 +24,7 @@ from codecsplat_warp.metrics.image import ImageMetrics
 from codecsplat_warp.choices import RDO_PRESETS
 from codecsplat_warp.model.pretrained import save_pretrained
 from conftest import tiny_coding_model
-from test_cli_commands import write_scene
+from test_cli_commands import write_indexed_scenes
 
 INDEX = {"a": {"context": [0, 2], "target": [1]}, "b": {"context": [0, 2], "target": [1]}}
 
@@ -33,10 +33,7 @@ INDEX = {"a": {"context": [0, 2], "target": [1]}, "b": {"context": [0, 2], "targ
 def scenes(tmp_path_factory):
     """Scene folders a and b (3 procedural views at 48x32) and an index with one sample each."""
     root = tmp_path_factory.mktemp("scenes")
-    write_scene(root / "data" / "a", seed=1, views=3)
-    write_scene(root / "data" / "b", seed=2, views=3)
-    (root / "index.json").write_text(json.dumps(INDEX))
-    return root
+    return write_indexed_scenes(root, INDEX, views=3)
 
 
 @pytest.fixture(scope="module")
