@@ -8,18 +8,14 @@ skipping and stopping rules and the arithmetic of :mod:`.raster_composite`. Tile
 splits the tiles into runs launched on several threads (``first_tile`` is a run's first tile), and a pixel's result
 does not depend on that split.
 
-Two tests leave out rows that cannot contribute, without changing which rows are composited:
+Two tests leave out rows that cannot contribute, without changing which rows are composited (the bounds are
+:mod:`.raster_reach`'s):
 
-* Skip power: a row is skipped at a pixel before its ``exp`` when its power there exceeds
-  ``S = log(ALPHA_LEVELS * opacity) + SKIP_MARGIN`` (``skip_powers``, one per intersection). There
-  ``opacity * exp(-power) <= exp(-SKIP_MARGIN) / 255``: alpha is below the 1/255 threshold by a margin far larger
-  than the rounding of ``exp``, ``log`` and the product.
+* Skip power: a row is skipped at a pixel before its ``exp`` when its power there exceeds its skip power ``S``
+  (``skip_powers``, one per intersection), where its alpha is below the 1/255 threshold for certain.
 * Line masks: the power along a line is a quadratic in the pixel's x, so the pixels where it can be at most ``S``
-  form an interval, solved for in float64 (:func:`line_mask`). The interval is taken for a raised threshold
-  ``S (1 + 4 g k) + g`` (``line_powers``), where ``k`` is the condition number of the row's conic and ``g`` bounds the
-  relative rounding of the kernel's power (:data:`POWER_ROUNDING`): the power the kernel computes differs from the
-  exact quadratic by at most ``g k`` times itself, so every pixel where the computed power is at most ``S`` is in
-  the interval. A conic too ill-conditioned for that (``g k > 0.1``) gets every pixel of the line.
+  form an interval, solved for in float64 (:func:`line_mask`) at the row's reach power (``line_powers``), which
+  covers the rounding of the kernel's power; a conic too ill-conditioned for that gets every pixel of the line.
 
 The backward walks each pixel's rows back to front from the index the forward saved, as the CUDA kernel does, and
 adds the gradient of every (pixel, row) pair to that row's *intersection* with the tile: row ``grads`` of the
@@ -38,51 +34,22 @@ from typing import Any
 import warp as wp
 
 from .raster_composite import blend_row, gaussian_power, pixel_upstream, row_alpha, row_gradient, write_pixel
+from .raster_reach import reach_power, skip_power
 from .raster_row import (
-    ALPHA_LEVELS, ALPHA_THRESHOLD, CONIC_A, CONIC_B, CONIC_C, DEPTH, MAX_ALPHA, MEAN_X, MEAN_Y, OPACITY, ROW_WIDTH,
+    ALPHA_THRESHOLD, CONIC_A, CONIC_B, CONIC_C, DEPTH, MAX_ALPHA, MEAN_X, MEAN_Y, OPACITY, ROW_WIDTH,
 )  # fmt: skip
 from .raster_tiles import intersection_position
 
 wp.set_module_options({"enable_backward": False})
-
-SKIP_MARGIN = 1.0 / 1024.0
-"""Margin of the skip power above ``log(ALPHA_LEVELS * opacity)`` (see the module docstring): a skipped row's alpha
-is at most ``exp(-1/1024) = 0.99902`` times the threshold, where float rounding moves it by about 1e-6."""
-
-POWER_ROUNDING = {"float32": 1.0e-6, "float64": 1.0e-12}
-"""Bound ``g`` on the relative rounding error of the kernel's power ``0.5 (a dx^2 + c dy^2) + b dx dy`` in each dtype,
-relative to ``0.5 a dx^2 + 0.5 c dy^2 + |b dx dy|`` (about 16 units in the last place; float64 is given more, so
-that it also covers the float64 rounding of the line masks)."""
-
-MAX_CONDITIONED = 0.1
-"""Largest ``g k`` (rounding bound times conic condition number) for which a row gets a line interval; rows beyond
-reach every pixel of a line (about 1e5 for float32: a Gaussian over 300 times longer than wide on screen)."""
 
 LINE_SLACK = 1.0e-3
 """Pixels by which a line interval is widened on each side against the float64 rounding of its ends."""
 
 
 @wp.func
-def skip_power(opacity: Any):
-    """Power above which a row of this opacity has alpha below :data:`.raster_row.ALPHA_THRESHOLD` for certain."""
-    return wp.log(type(opacity)(ALPHA_LEVELS) * opacity) + type(opacity)(SKIP_MARGIN)
-
-
-@wp.func
 def line_power(splats: wp.array2d(dtype=Any), row: int, skip: Any, rounding: wp.float64):
-    """The threshold of the row's line intervals: its skip power raised by the rounding the kernel's power may
-    carry (see the module docstring), or +inf when the conic is too ill-conditioned for intervals."""
-    a = wp.float64(splats[row, CONIC_A])
-    b = wp.float64(splats[row, CONIC_B])
-    c = wp.float64(splats[row, CONIC_C])
-    det = a * c - b * b
-    if not (a > wp.float64(0.0) and det > wp.float64(0.0)):
-        return wp.float64(wp.inf)
-    largest = wp.float64(0.5) * (a + c) + wp.sqrt(wp.float64(0.25) * (a - c) * (a - c) + b * b)
-    spread = rounding * largest * largest / det  # g k
-    if spread > wp.float64(MAX_CONDITIONED):
-        return wp.float64(wp.inf)
-    return wp.float64(skip) * (wp.float64(1.0) + wp.float64(4.0) * spread) + rounding
+    """The threshold of the row's line intervals: its :func:`.raster_reach.reach_power`."""
+    return reach_power(splats[row, CONIC_A], splats[row, CONIC_B], splats[row, CONIC_C], skip, rounding)
 
 
 @wp.func
@@ -172,7 +139,7 @@ def composite_forward_tiles(
     Args:
         ranges, sorted_ids, splats, background, min_transmittance, out_*: as in
             :func:`.raster_composite.composite_kernels`' ``composite_forward``.
-        first_tile: the flat tile of thread 0; rounding: :data:`POWER_ROUNDING` of the dtype.
+        first_tile: the flat tile of thread 0; rounding: :data:`.raster_reach.POWER_ROUNDING` of the dtype.
         skip_powers, line_powers: ``[M]`` outputs, the skip power and the line-interval threshold of every sorted
             intersection of the tile (see the module docstring), which the backward reads.
         line_rows, line_masks: ``[M]`` scratch (int32, uint32), the list of :func:`list_line_rows`.
@@ -269,8 +236,9 @@ def composite_backward_tiles(
     end = ranges[tile, 1]
     for t in range(start, end):
         row = sorted_ids[t]
-        positions[t] = intersection_position(splats, radii, counts, inclusive_offsets, row, corner[1], corner[2],
-                                             tile_size, tiles_x, tiles_per_image // tiles_x)  # fmt: skip
+        positions[t] = intersection_position(splats, radii, counts, inclusive_offsets, row, line_powers[t], corner[1],
+                                             corner[2], tile_size, tiles_x, tiles_per_image // tiles_x, width,
+                                             height)  # fmt: skip
     zero = grad_intersections.dtype(0.0)
     half = grad_intersections.dtype(0.5)
     columns = wp.where(grad_depth.shape[0] > 0, ROW_WIDTH, DEPTH)  # no depth gradient: the last column stays 0

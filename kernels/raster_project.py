@@ -16,7 +16,7 @@ A pure translation: images are unchanged and the gradient of ``x - o`` is the id
 The ``project_gaussians`` kernel (see :func:`projection_kernels`) also culls (non-finite, z outside
 (near, far), det <= 0 after the blur, opacity < 1/255 (:data:`.raster_row.ALPHA_THRESHOLD`), off-screen), writes
 integer pixel radii from the opacity-aware extent ``min(3.33, sqrt(2 ln(255 opacity)))`` sigma, the number of tiles
-each row touches, input validation flags and the list of visible rows. Its twin
+each row reaches (:mod:`.raster_reach`), input validation flags and the list of visible rows. Its twin
 ``project_gaussians_differentiable`` recomputes only the differentiable row of the listed visible Gaussians and is
 launched with ``adjoint=True`` for the backward pass (straight-line code, so Warp's automatic adjoint is exact; a
 float64 gradcheck covers it).
@@ -33,7 +33,10 @@ from .lanes import CACHE_LINE_INT64, atomic_increment, warp_append, warp_fold_ra
 from .raster_row import (
     ALPHA_LEVELS, ALPHA_THRESHOLD, BLUE, CONIC_A, CONIC_B, CONIC_C, DEPTH, GREEN, MEAN_X, MEAN_Y, OPACITY, RED,
 )  # fmt: skip
-from .raster_tiles import DEPTH_RANGE, DEPTH_RANGE_LINES, NO_DEPTH_BITS, NUM_FLAGS, depth_bits, tile_rect
+from .raster_reach import row_reach
+from .raster_tiles import (
+    DEPTH_RANGE, DEPTH_RANGE_LINES, NO_DEPTH_BITS, NUM_FLAGS, depth_bits, reached_tile_count, tile_rect,
+)  # fmt: skip
 from .sh import sh_color
 
 MAX_EXTENT_SIGMAS = 3.33
@@ -339,6 +342,7 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         tile_size: int,
         tiles_x: int,
         tiles_y: int,
+        rounding: wp.float64,
         zero_culled: int,
         first_gaussian: int,
         splats: wp.array2d(dtype=Any),
@@ -359,11 +363,12 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
                 ``[3]`` the world translation, all from :func:`prepare_cameras`.
             near, far: depth range (exclusive); eps2d: low-pass blur in px^2 (0.3); antialiased: 1 to scale
                 opacity by the blur compensation ``sqrt(det / det_blur)``.
+            rounding: :data:`.raster_reach.POWER_ROUNDING` of the dtype (for the tiles a row reaches).
             zero_culled: 1 to write zero rows for culled Gaussians; 0 leaves them unwritten (the rasterizer reads
                 only visible rows, and ten scattered stores per culled Gaussian cost more than the projection).
             first_gaussian: the Gaussian of thread ``(b, 0)``.
             splats: output rows ``[B*N, 10]``; radii: ``[B*N]`` pixel radii (0 = culled);
-            tile_counts: ``[B*N]`` int64 tiles touched; flags: ``[NUM_FLAGS]`` counters (initialised by
+            tile_counts: ``[B*N]`` int64 tiles reached (:func:`.raster_tiles.reached_tile_count`); flags: ``[NUM_FLAGS]`` counters (initialised by
                 :func:`prepare_cameras`): validation counts and the range of the visible depths' float32 bits.
             visible_count: ``[1]`` int64 (zeroed by :func:`prepare_cameras`), visible_rows: ``[B*N]`` int32: the
                 first ``visible_count[0]`` entries receive the flat index of every visible row, in no particular
@@ -430,7 +435,10 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         write_row(splats, i, mean2d, conic, effective_opacity, color, p[2])
         rect = tile_rect(mean2d[0], mean2d[1], radius, tile_size, tiles_x, tiles_y)
         radii[i] = radius
-        tile_counts[i] = wp.int64((rect[2] - rect[0]) * (rect[3] - rect[1]))
+        reach = row_reach(effective_opacity, conic[0], conic[1], conic[2], rounding)
+        reached = reached_tile_count(mean2d[0], mean2d[1], conic[0], conic[1], conic[2], reach, rect, tile_size,
+                                     width, height)  # fmt: skip
+        tile_counts[i] = wp.int64(reached)
         visible_rows[warp_append(visible_count, 0)] = i
         warp_fold_range(flags, DEPTH_RANGE, DEPTH_RANGE_LINES, depth_bits(p[2]))
 

@@ -1,6 +1,9 @@
 """Tile binning of projected Gaussians: tile rectangles, sort keys and per-tile ranges.
 
-One intersection is one (camera, Gaussian, tile) triple. Its key is ``[flat tile | depth key]``: the flat tile
+One intersection is one (camera, Gaussian, tile) triple, for every tile of the Gaussian's bounding rectangle
+(:func:`tile_rect`) that holds a pixel the Gaussian may reach (:func:`.raster_reach.tile_reached`); the others hold
+no pixel where its alpha reaches the threshold. A row's intersections are written in the order of its rectangle's
+tiles, row by row. Its key is ``[flat tile | depth key]``: the flat tile
 index ``camera * tiles_per_image + tile`` above ``depth_bits`` bits of depth key, so one radix sort over the key's
 used bits orders intersections by camera, then tile, then depth. The depth key is
 ``(float32 bits of depth - depth_base) >> depth_shift``: a positive float32 sorts like its bit pattern, and
@@ -26,7 +29,8 @@ from typing import Any
 import warp as wp
 
 from .lanes import CACHE_LINE_INT64
-from .raster_row import DEPTH, MEAN_X, MEAN_Y
+from .raster_reach import row_reach, tile_reached
+from .raster_row import CONIC_A, CONIC_B, CONIC_C, DEPTH, MEAN_X, MEAN_Y, OPACITY
 
 wp.set_module_options({"enable_backward": False})
 
@@ -83,6 +87,18 @@ def tile_rect(x: Any, y: Any, radius: wp.vec2i, tile_size: int, tiles_x: int, ti
     x1 = int(wp.min(wp.max(wp.ceil((x + rx) / ts), zero), type(x)(float(tiles_x))))
     y1 = int(wp.min(wp.max(wp.ceil((y + ry) / ts), zero), type(x)(float(tiles_y))))
     return wp.vec4i(x0, y0, x1, y1)
+
+
+@wp.func
+def reached_tile_count(mean_x: Any, mean_y: Any, a: Any, b: Any, c: Any, reach: wp.float64, rect: wp.vec4i,
+                       tile_size: int, width: int, height: int):  # fmt: skip
+    """How many tiles of ``rect`` (:func:`tile_rect`) the row reaches (:func:`.raster_reach.tile_reached`)."""
+    count = int(0)
+    for ty in range(rect[1], rect[3]):
+        for tx in range(rect[0], rect[2]):
+            if tile_reached(mean_x, mean_y, a, b, c, reach, tx, ty, tile_size, width, height):
+                count += 1
+    return count
 
 
 @wp.func
@@ -149,6 +165,9 @@ def emit_intersections(
     tiles_x: int,
     tiles_y: int,
     num_tiles: int,
+    width: int,
+    height: int,
+    rounding: wp.float64,
     capacity: int,
     first_row: int,
     keys: wp.array(dtype=Any),
@@ -169,8 +188,9 @@ def emit_intersections(
         radii: pixel radii ``[B*N]``; zero means culled.
         counts: int64 intersections per row ``[B*N]``; ``inclusive_offsets`` their inclusive prefix sum.
         flags: the int64 flag buffer with the visible depth range as the projection folded it.
-        num_tiles: flat tiles ``B * tiles_x * tiles_y`` (below 2^31); capacity: intersections the buffers take
-            (below 2^31).
+        num_tiles: flat tiles ``B * tiles_x * tiles_y`` (below 2^31); width, height: the image in pixels;
+            rounding: :data:`.raster_reach.POWER_ROUNDING` of the rows' dtype (the projection counted with it);
+            capacity: intersections the buffers take (below 2^31).
         keys: uint32 (a layout of ``bits <= 32``) or int64 output, values: int32 output (row indices; 0 for
             padding), each at least ``capacity`` long.
     """
@@ -189,31 +209,54 @@ def emit_intersections(
         if count == wp.int64(0):
             return
     first_tile = (i // num_gaussians) * tiles_x * tiles_y
-    rect = tile_rect(splats[i, MEAN_X], splats[i, MEAN_Y], radii[i], tile_size, tiles_x, tiles_y)
+    mean_x = splats[i, MEAN_X]
+    mean_y = splats[i, MEAN_Y]
+    a = splats[i, CONIC_A]
+    b = splats[i, CONIC_B]
+    c = splats[i, CONIC_C]
+    reach = row_reach(splats[i, OPACITY], a, b, c, rounding)
+    rect = tile_rect(mean_x, mean_y, radii[i], tile_size, tiles_x, tiles_y)
     low = depth_key(splats[i, DEPTH], layout[0], layout[1])
     depth_key_bits = wp.int64(layout[2])
     k = int(inclusive_offsets[i] - count)
-    for ty in range(rect[1], rect[3]):
-        for tx in range(rect[0], rect[2]):
-            if k >= capacity:
-                return
-            tile = wp.int64(first_tile + ty * tiles_x + tx)
-            keys[k] = keys.dtype((tile << depth_key_bits) | low)
-            values[k] = i
-            k += 1
+    end = wp.min(int(inclusive_offsets[i]), capacity)
+    # The reached tiles; then, only if the projection counted more (the same test compiled into another kernel),
+    # unreached ones, which the compositing finds nothing to add from.
+    for unreached in range(2):
+        for ty in range(rect[1], rect[3]):
+            for tx in range(rect[0], rect[2]):
+                if k >= end:
+                    return
+                if tile_reached(mean_x, mean_y, a, b, c, reach, tx, ty, tile_size, width, height) == (unreached == 0):
+                    tile = wp.int64(first_tile + ty * tiles_x + tx)
+                    keys[k] = keys.dtype((tile << depth_key_bits) | low)
+                    values[k] = i
+                    k += 1
 
 
 @wp.func
 def intersection_position(
     splats: wp.array2d(dtype=Any), radii: wp.array(dtype=wp.vec2i), counts: wp.array(dtype=wp.int64),
-    inclusive_offsets: wp.array(dtype=wp.int64), row: int, tx: int, ty: int, tile_size: int, tiles_x: int,
-    tiles_y: int,
+    inclusive_offsets: wp.array(dtype=wp.int64), row: int, reach: wp.float64, tx: int, ty: int, tile_size: int,
+    tiles_x: int, tiles_y: int, width: int, height: int,
 ):  # fmt: skip
-    """The position at which :func:`emit_intersections` writes the intersection of projected row ``row`` with tile
-    ``(tx, ty)`` of the row's image: a row's intersections follow its tile rectangle row by row, from
-    ``inclusive_offsets[row] - counts[row]`` on."""
-    rect = tile_rect(splats[row, MEAN_X], splats[row, MEAN_Y], radii[row], tile_size, tiles_x, tiles_y)
-    return int(inclusive_offsets[row] - counts[row]) + (ty - rect[1]) * (rect[2] - rect[0]) + tx - rect[0]
+    """The position at which :func:`emit_intersections` wrote the intersection of projected row ``row`` with tile
+    ``(tx, ty)`` of the row's image (a tile it reached): a row's intersections follow the reached tiles of its
+    rectangle row by row, from ``inclusive_offsets[row] - counts[row]`` on. ``reach``: the row's
+    :func:`.raster_reach.row_reach`."""
+    mean_x = splats[row, MEAN_X]
+    mean_y = splats[row, MEAN_Y]
+    a = splats[row, CONIC_A]
+    b = splats[row, CONIC_B]
+    c = splats[row, CONIC_C]
+    rect = tile_rect(mean_x, mean_y, radii[row], tile_size, tiles_x, tiles_y)
+    position = int(inclusive_offsets[row] - counts[row])
+    for y in range(rect[1], ty + 1):
+        last_x = wp.where(y == ty, tx, rect[2])
+        for x in range(rect[0], last_x):
+            if tile_reached(mean_x, mean_y, a, b, c, reach, x, y, tile_size, width, height):
+                position += 1
+    return position
 
 
 @wp.func

@@ -46,7 +46,7 @@ import torch
 from ..checks import FLOAT_DTYPES, check_finite, check_tensor, common_device, validation_enabled
 from ..device import cpu_threads, launch, matrices, stage_host_values, vectors, warp_dtype, warp_scope
 from ..errors import InputError, RasterMemoryError
-from ..kernels import raster_composite, raster_composite_cpu, raster_project, raster_row, raster_tiles
+from ..kernels import raster_composite, raster_composite_cpu, raster_project, raster_reach, raster_row, raster_tiles
 from .primitives import inclusive_scan, radix_sort_pairs, row_chunks, run_concurrently, weighted_chunks
 
 _LOW_PRECISION = (torch.float16, torch.bfloat16)
@@ -412,6 +412,11 @@ _LOW_PASS = {dtype: warp_dtype(dtype)(LOW_PASS_PX2) for dtype in FLOAT_DTYPES}
 _ZERO = {dtype: warp_dtype(dtype)(0.0) for dtype in FLOAT_DTYPES}
 """0 as a Warp scalar of each float dtype (the adjoint of a scalar argument)."""
 
+_POWER_ROUNDING = {dtype: warp_dtype(torch.float64)(raster_reach.POWER_ROUNDING[name])
+                   for dtype, name in ((torch.float32, "float32"), (torch.float64, "float64"))}  # fmt: skip
+"""The bound on the rounding of a row's power, per Gaussian dtype (a Warp float64): the binning's reached tiles
+and the CPU tile layout's line masks (:mod:`~codecsplat_warp.kernels.raster_reach`)."""
+
 
 def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, settings: _Settings, splats: torch.Tensor,
              tile_counts: torch.Tensor, flags: torch.Tensor, visible: _Visible, ranges: torch.Tensor, wdev,
@@ -435,6 +440,7 @@ def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, setting
         settings.tile_size,
         settings.tiles_x,
         settings.tiles_y,
+        _POWER_ROUNDING[dtype],
         int(zero_culled),
     ]
     outputs = [splats, vectors(radii), tile_counts, flags, visible.count, visible.rows, vectors(ranges)]
@@ -686,9 +692,6 @@ class _TileComposite:
 
 _TILE_COMPOSITE = _TileComposite()
 
-_POWER_ROUNDING = {dtype: warp_dtype(torch.float64)(raster_composite_cpu.POWER_ROUNDING[name])
-                   for dtype, name in ((torch.float32, "float32"), (torch.float64, "float64"))}  # fmt: skip
-"""The tile layout's bound on the rounding of a row's power, per Gaussian dtype (a Warp float64)."""
 
 
 def _line_scratch(sorted_ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -981,6 +984,9 @@ def _emit(binning: _Binning, capacity: int, keys: torch.Tensor, values: torch.Te
         settings.tiles_x,
         settings.tiles_y,
         binning.num_tiles,
+        settings.width,
+        settings.height,
+        _POWER_ROUNDING[splats.dtype],
         capacity,
     ]
     pieces = row_chunks(splats.shape[0], splats.device) if capacity else [(0, 1)]
