@@ -191,5 +191,6 @@ def rotate_sh(sh: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
     if degree == 0:
         return sh
     M = sh_rotation_matrices(R, degree).to(sh.dtype)
-    M = M.reshape(M.shape[0], *([1] * (sh.dim() - 3)), *M.shape[1:])
-    return M @ sh
+    # one matrix product per view (not a broadcast product: one tiny K x K product per Gaussian, 5 ms of an
+    # 8-view RDO step on an H200)
+    return torch.einsum("vkl,v...lc->v...kc", M, sh)
