@@ -1,10 +1,11 @@
 """CUDA warp-level helpers for Warp kernels (``wp.func_native`` snippets), each also correct on the CPU.
 
 Warp's CPU backend runs a tiled launch with one lane per block and a plain launch one thread at a time, so on
-the CPU every helper reduces over a single lane: :func:`warp_sum`, :func:`warp_max` and :func:`warp_any` return
-their argument, :func:`warp_append` is an atomic increment. :func:`atomic_increment` counts atomically on both (Warp's
-own CPU atomics are plain adds, wrong for launches that several CPU threads run at once). On CUDA they act on the lanes of the calling
-thread's 32-thread warp (a partial last warp of a block included).
+the CPU every helper reduces over a single lane: :func:`warp_sum` and :func:`warp_max` return their argument,
+:func:`warp_count` whether it is non-zero, :func:`warp_append` is an atomic increment. :func:`atomic_increment`
+counts atomically on both (Warp's own CPU atomics are plain adds, wrong for launches that several CPU threads run at
+once). On CUDA they act on the lanes of the calling thread's 32-thread warp (a partial last warp of a block
+included).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from __future__ import annotations
 import warp as wp
 
 WARP_SIZE = wp.constant(32)
-"""CUDA threads per warp: the lanes that :func:`warp_sum`, :func:`warp_max` and :func:`warp_any` reduce over."""
+"""CUDA threads per warp: the lanes that :func:`warp_sum`, :func:`warp_max` and :func:`warp_count` reduce over."""
 
 _WARP_MASK = """
 const unsigned warp_lane = threadIdx.x & 31u;
@@ -31,16 +32,6 @@ for (unsigned offset = 16u; offset > 0u; offset >>= 1u) {{
 #endif
 return total;
 """
-
-_WARP_ANY = f"""
-#if defined(__CUDA_ARCH__)
-{_WARP_MASK}
-return __any_sync(warp_mask, flag) ? 1 : 0;
-#else
-return flag;
-#endif
-"""
-
 
 @wp.func_native(_WARP_SUM)
 def warp_sum(value: wp.float32) -> wp.float32:
@@ -71,10 +62,20 @@ def warp_max(value: int) -> int:
     ...
 
 
-@wp.func_native(_WARP_ANY)
-def warp_any(flag: int) -> int:
-    """1 when ``flag`` is non-zero on any lane of this thread's CUDA warp (on the CPU: ``flag != 0``); every lane
-    of the warp must call it."""
+_WARP_COUNT = f"""
+#if defined(__CUDA_ARCH__)
+{_WARP_MASK}
+return __popc(__ballot_sync(warp_mask, flag));
+#else
+return flag != 0 ? 1 : 0;
+#endif
+"""
+
+
+@wp.func_native(_WARP_COUNT)
+def warp_count(flag: int) -> int:
+    """How many lanes of this thread's CUDA warp have ``flag`` non-zero, on every lane (on the CPU: 1 when
+    ``flag`` is non-zero, else 0); every lane of the warp must call it."""
     ...
 
 

@@ -7,10 +7,12 @@ lane and a tile has ``tile_size^2`` of them). Lanes of a tile's last block beyon
 block stages ``batch`` projected rows of its tile's depth-sorted list in shared memory (``tile_load`` of the
 ids, then ``tile_load_indexed`` of the rows) and each thread walks the staged rows for its pixel. ``batch``
 is a compile-time constant of :func:`composite_kernels` (``block_dim`` on CUDA, small on the CPU where every
-one-pixel block stages its own copy). In the backward the lanes of a CUDA warp walk the rows in step and sum
-each row's gradient over the warp with shuffles (:func:`~codecsplat_warp.kernels.lanes.warp_sum`, a ``wp.func_native`` snippet
-that is the identity on the CPU's one-lane blocks) before one lane adds it to the row with atomics, as gsplat does: ten
-atomics per row and warp instead of up to 320.
+one-pixel block stages its own copy). In the backward the lanes of a CUDA warp walk the rows in step. A row
+that more than :data:`DIRECT_ATOMIC_LANES` lanes of the warp reach has its gradient summed over the warp with
+shuffles (:func:`~codecsplat_warp.kernels.lanes.warp_sum`, a ``wp.func_native`` snippet that is the identity on the
+CPU's one-lane blocks) before one lane adds it to the row with atomics, as gsplat does: ten atomics per row and warp
+instead of up to 320. A row that fewer lanes reach (the common case for the model's pixel-sized Gaussians) gets
+their atomics directly, without the ten reductions.
 
 Constants are gsplat's: ``alpha = min(0.999, opacity * exp(-power))``; rows with ``power < 0`` or
 ``alpha < 1/255`` (:data:`.raster_row.ALPHA_THRESHOLD`) are skipped; a pixel stops (exclusively) at the first row whose
@@ -34,7 +36,7 @@ from typing import Any
 
 import warp as wp
 
-from .lanes import WARP_SIZE, warp_any, warp_max, warp_sum
+from .lanes import WARP_SIZE, warp_count, warp_max, warp_sum
 from .raster_row import (
     ALPHA_THRESHOLD, BLUE, CONIC_A, CONIC_B, CONIC_C, DEPTH, GREEN, MAX_ALPHA, MEAN_X, MEAN_Y, OPACITY, RED,
     ROW_WIDTH,
@@ -194,6 +196,10 @@ def row_gradient(rows: Any, t: int, cx: Any, cy: Any, vis: Any, alpha: Any, T: A
         g[OPACITY] = vis * v_alpha
     return g, T, behind + wp.vector(c_r * weight, c_g * weight, c_b * weight, z * weight)
 
+
+DIRECT_ATOMIC_LANES = 4
+"""In the compositing backward, a row that this many lanes of a warp or fewer reach gets their atomic adds
+directly; more lanes sum over the warp first (ten shuffle reductions) and one lane adds."""
 
 FORWARD_BLOCKS_PER_SM = 4
 BACKWARD_BLOCKS_PER_SM = 4
@@ -360,13 +366,17 @@ def composite_kernels(batch: int):
                 opacity = rows[t, OPACITY]
                 alpha = wp.min(grad_splats.dtype(MAX_ALPHA), opacity * vis)
                 valid = batch_start + t <= last and power >= zero and alpha >= grad_splats.dtype(ALPHA_THRESHOLD)
-                if warp_any(int(valid)) != 0:
+                lanes = warp_count(int(valid))
+                if lanes > 0:
                     g = wp.vector(zero, zero, zero, zero, zero, zero, zero, zero, zero, zero)
                     if valid:
                         g, T, behind = row_gradient(rows, t, cx, cy, vis, alpha, T, behind, upstream, T_final)
-                    for k in range(ROW_WIDTH):
-                        g[k] = warp_sum(g[k])
-                    if leader:
+                    adds = valid
+                    if lanes > DIRECT_ATOMIC_LANES:  # warp-uniform: sum over the warp, one lane adds
+                        for k in range(ROW_WIDTH):
+                            g[k] = warp_sum(g[k])
+                        adds = leader
+                    if adds:
                         row = ids[t]
                         for k in range(ROW_WIDTH):
                             if k < columns:
