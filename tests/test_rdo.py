@@ -211,7 +211,7 @@ def test_the_cpu_runs_the_eager_decoder():
     assert rdo.uses_cuda_graphs(rdo.RDOConfig(steps=None, time_budget=5.0), cuda)
     assert not rdo.uses_cuda_graphs(rdo.RDOConfig(steps=rdo.GRAPH_MIN_STEPS - 1), cuda)  # capture would not pay
     assert not rdo.uses_cuda_graphs(rdo.RDOConfig(steps=100, cuda_graphs=False), cuda)
-    assert not rdo.uses_cuda_graphs(rdo.RDOConfig(steps=100, precision="bfloat16"), cuda)
+    assert rdo.uses_cuda_graphs(rdo.RDOConfig(steps=100, precision="bfloat16"), cuda)  # captured under autocast
 
 
 def test_optimising_the_feature_gives_a_decodable_bitstream_that_fits_the_context_better():
@@ -275,29 +275,37 @@ def test_the_feature_variable_needs_the_feature_and_no_latent_anchor():
 
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU visible to torch")
-@pytest.mark.parametrize("variable, rounding", [("latents", "noise"), ("feature", "noise"), ("latents", "annealed")])
-def test_the_graphed_decoder_gives_the_eager_loss_and_gradients(variable, rounding):
+@pytest.mark.parametrize("variable, rounding, precision", [
+    ("latents", "noise", "float32"), ("feature", "noise", "float32"), ("latents", "annealed", "float32"),
+    ("latents", "noise", "bfloat16")])
+def test_the_graphed_decoder_gives_the_eager_loss_and_gradients(variable, rounding, precision):
     model = tiny_coding_model(5).cuda()
     images, cameras = _scene(13)
     images, cameras = images.cuda(), cameras.to(device="cuda")
     with torch.no_grad():
         feature = model(images, cameras)["F_c"]
     start = model.codec.compress(feature, LAM, reconstruct=True)
-    config = rdo.RDOConfig(steps=rdo.GRAPH_MIN_STEPS, variable=variable, rounding=rounding)
+    config = rdo.RDOConfig(steps=rdo.GRAPH_MIN_STEPS, variable=variable, rounding=rounding, precision=precision)
     target = rdo.rdo_target(model, images, cameras, LAM, start, config)
     model.requires_grad_(False)
     model.train()
     latents = rdo.start_variables(start, config, feature)
     with validation(False):
-        decoder = rdo.GraphedDecoder(model, target, latents, variable, rounding == "annealed")  # raises here
+        # raises here when the capture fails
+        decoder = rdo.GraphedDecoder(model, target, latents, variable, rounding == "annealed", precision)
     assert isinstance(rdo.step_decoder(model, target, latents, config), rdo.GraphedDecoder)
     for trial in range(3):  # replays with new latents, new noise and (annealed) a new temperature
         temperature = rdo.annealing_temperature(config, trial, 0.0)
         (eager, eager_grads), (graphed, graphed_grads) = [
             _loss_and_gradients(model, latents, target, config, trial, d, temperature) for d in (None, decoder)]
-        assert float(graphed) == pytest.approx(float(eager), rel=1e-4)
-        for a, b in zip(eager_grads, graphed_grads):
-            assert float((a - b).norm()) <= 1e-3 * float(a.norm()) + 1e-9
+        if precision == "float32":
+            assert float(graphed) == pytest.approx(float(eager), rel=1e-4)
+            for a, b in zip(eager_grads, graphed_grads):
+                assert float((a - b).norm()) <= 1e-3 * float(a.norm()) + 1e-9
+        else:  # bf16 rounds each run differently (atomics in float32 feed bf16 convolutions): same direction
+            assert float(graphed) == pytest.approx(float(eager), rel=1e-2)
+            for a, b in zip(eager_grads, graphed_grads):
+                assert float(torch.nn.functional.cosine_similarity(a.flatten(), b.flatten(), dim=0)) >= 0.98
         with torch.no_grad():
             for z in latents:
                 z.add_(torch.randn_like(z))

@@ -103,8 +103,8 @@ class RDOConfig:
         seed: seed of the training quantiser's noise.
         precision: ``"float32"`` or ``"bfloat16"`` (bf16 autocast for the networks on CUDA; the geometry and the
             rasterizer stay float32).
-        cuda_graphs: on CUDA in float32, run the decoder up to the Gaussians as CUDA graphs captured once per run
-            (:class:`GraphedDecoder`); ignored on the CPU and in bfloat16.
+        cuda_graphs: on CUDA, run the decoder up to the Gaussians as CUDA graphs captured once per run
+            (:class:`GraphedDecoder`, in either precision); ignored on the CPU.
         variable: what Adam moves: ``"latents"`` (the posterior means on the gained grid) or ``"feature"`` (the
             encoder's F_c, through the codec's analysis and posterior; :func:`optimise_latents` then needs it).
         feature_step: with ``variable="feature"``, Adam's start step as a fraction of the amortised F_c's standard
@@ -309,6 +309,7 @@ class GraphedDecoder:
         variables: the run's optimised tensors (float32): their shapes fix the graphs'.
         variable: what they are (:attr:`RDOConfig.variable`).
         annealed: annealed rounding (:attr:`RDOConfig.rounding`), its temperature set at every call.
+        precision: :attr:`RDOConfig.precision`; ``"bfloat16"`` captures the networks under bf16 autocast.
     Calling it with the optimised tensors, the generator and the temperature gives :data:`Decoded`.
     """
 
@@ -316,7 +317,7 @@ class GraphedDecoder:
     """Eager forward+backward passes on a side stream before the capture (cuDNN and Warp pick and load kernels)."""
 
     def __init__(self, model, target: RDOTarget, variables: list[torch.Tensor], variable: str = "latents",
-                 annealed: bool = False):
+                 annealed: bool = False, precision: str = "float32"):
         with torch.no_grad():
             embedding = model.codec.embedding(target.lam)
         device = variables[0].device
@@ -325,8 +326,10 @@ class GraphedDecoder:
         self.variables = [v.detach().clone().requires_grad_(True) for v in variables]
 
         def decode() -> list[torch.Tensor]:
-            bits, s, g = decode_variables(model, self.variables, target, variable, noise=self.noise,
-                                          lambda_embedding=embedding, temperature=self.temperature)
+            # a graph replays kernels, not autocast's cast cache: captured without it
+            with torch.autocast("cuda", dtype=torch.bfloat16, enabled=precision == "bfloat16", cache_enabled=False):
+                bits, s, g = decode_variables(model, self.variables, target, variable, noise=self.noise,
+                                              lambda_embedding=embedding, temperature=self.temperature)
             return [bits, s, g.means, g.quats, g.scales, g.opacities, g.sh]
 
         def backward(outputs: list[torch.Tensor], grads: list[torch.Tensor]) -> tuple[torch.Tensor, ...]:
@@ -387,10 +390,10 @@ GRAPH_MIN_STEPS = 16
 
 
 def uses_cuda_graphs(config: RDOConfig, device: torch.device) -> bool:
-    """Whether a run of ``config`` on ``device`` replays the decoder as CUDA graphs: on CUDA, in float32, with
+    """Whether a run of ``config`` on ``device`` replays the decoder as CUDA graphs: on CUDA, with
     ``config.cuda_graphs``, and with at least :data:`GRAPH_MIN_STEPS` steps (or a time budget alone)."""
     long_enough = config.steps is None or config.steps >= GRAPH_MIN_STEPS
-    return config.cuda_graphs and config.precision == "float32" and device.type == "cuda" and long_enough
+    return config.cuda_graphs and device.type == "cuda" and long_enough
 
 
 def step_decoder(model, target: RDOTarget, variables: list[torch.Tensor], config: RDOConfig
@@ -402,7 +405,8 @@ def step_decoder(model, target: RDOTarget, variables: list[torch.Tensor], config
         return None
     try:
         with validation(False):
-            return GraphedDecoder(model, target, variables, config.variable, config.rounding == "annealed")
+            return GraphedDecoder(model, target, variables, config.variable, config.rounding == "annealed",
+                                  config.precision)
     except RuntimeError as error:
         warnings.warn(f"RDO runs without CUDA graphs: capturing the decoder failed ({error})", RuntimeWarning,
                       stacklevel=2)
