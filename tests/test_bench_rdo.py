@@ -61,6 +61,9 @@ def test_the_profile_names_every_part(workspace):
     assert set(profile["parts_ms"]) == set(RDO_PROFILE_PARTS) and len(profile["step_ms_all"]) == 2
     assert profile["parts_ms"]["rasterize"]["forward"] > 0 and profile["parts_ms"]["rasterize"]["backward"] > 0
     assert profile["parts_ms"]["gs_head"]["forward"] > 0 and profile["clock"] == "CPU time"
+    top = profile["top"]
+    assert 0 < len(top) <= 15 and all(row["ms"] > 0 and row["calls"] >= 1 for row in top)
+    assert [row["ms"] for row in top] == sorted((row["ms"] for row in top), reverse=True)
 
 
 @pytest.mark.parametrize("text, match", [("steps=3", "key=value"), ("learning_rate", "key=value"),

@@ -17,7 +17,9 @@ every step count.
 reprojection apart), the GS head, the 2D->3D map (unprojection), the rasterizer, the loss and the optimiser, each
 forward and backward, from ``torch.profiler`` on the first sample at the first lambda: CPU time per part on the
 CPU, GPU kernel time per part on CUDA (beside the step's wall time, whose excess over the kernels is launch,
-synchronisation and Python time). The median wall time of ``--profile-steps`` unprofiled steps comes first.
+synchronisation and Python time). The median wall time of ``--profile-steps`` unprofiled steps comes first; a
+second table lists the step's costliest GPU kernels (CUDA; those the decoder's CUDA graphs replay too, which the
+parts miss) or operators (CPU).
 """
 
 from __future__ import annotations
@@ -334,7 +336,25 @@ def profile_step(model, sample: Sample, lam: float, settings: dict, steps: int, 
     return {"scene": sample.scene, "views": sample.context_cameras.num_views,
             "size": [sample.context_cameras.width, sample.context_cameras.height], "lambda": lam,
             "step_ms": statistics.median(times), "step_ms_all": times,
-            "clock": "GPU kernel time" if device.type == "cuda" else "CPU time", "parts_ms": parts}
+            "clock": "GPU kernel time" if device.type == "cuda" else "CPU time", "parts_ms": parts,
+            "top": _top_work(prof.key_averages(), device)}
+
+
+TOP_ROWS = 15
+"""Rows of the profile's table of the costliest kernels (CUDA) or operators (CPU)."""
+
+
+def _top_work(averages, device: torch.device) -> list[dict]:
+    """The :data:`TOP_ROWS` costliest entries of a profiled step: on CUDA the GPU kernels by their own device time
+    (kernels replayed from the decoder's CUDA graphs included, where the parts cannot see them), on the CPU the
+    operators by their own CPU time; each ``{"name", "ms", "calls"}``."""
+    if device.type == "cuda":
+        rows = [(e.key, e.self_device_time_total, e.count) for e in averages
+                if e.device_type == torch.autograd.DeviceType.CUDA and e.self_device_time_total > 0]
+    else:
+        rows = [(e.key, e.self_cpu_time_total, e.count) for e in averages if e.self_cpu_time_total > 0]
+    rows.sort(key=lambda row: -row[1])
+    return [{"name": name, "ms": round(total / 1e3, 3), "calls": calls} for name, total, calls in rows[:TOP_ROWS]]
 
 
 _BACKWARD_PARTS = (("_RasterizeBackward", "rasterize"), ("_ReprojectAverage", "reprojection"),
@@ -382,4 +402,7 @@ def format_profile(profile: dict) -> str:
             f"λ={profile['lambda']:g}): median wall {profile['step_ms']:.2f} ms; parts in {profile['clock']} (ms)")
     columns = [("part", "part", "s"), ("forward", "forward", ".2f"), ("backward", "backward", ".2f"),
                ("total", "total", ".2f")]
-    return head + "\n" + format_table(rows, columns)
+    what = "GPU kernels" if profile["clock"] == "GPU kernel time" else "operators"
+    top = [{**row, "name": row["name"][:90]} for row in profile["top"]]
+    costliest = format_table(top, [("name", what, "s"), ("ms", "ms", ".3f"), ("calls", "calls", "d")])
+    return f"{head}\n{format_table(rows, columns)}\n\nThe {len(top)} costliest {what} of the step (own time):\n{costliest}"
