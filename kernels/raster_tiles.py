@@ -3,8 +3,8 @@
 One intersection is one (camera, Gaussian, tile) triple, for every tile of the Gaussian's bounding rectangle
 (:func:`tile_rect`) that holds a pixel the Gaussian may reach (:func:`.raster_reach.tile_reached`); the others hold
 no pixel where its alpha reaches the threshold. A row's intersections are written in the order of its rectangle's
-tiles, row by row. Its key is ``[flat tile | depth key]``: the flat tile
-index ``camera * tiles_per_image + tile`` above ``depth_bits`` bits of depth key, so one radix sort over the key's
+tiles, row by row. An intersection's key is ``[flat tile | depth key]``: the flat tile index
+``camera * tiles_per_image + tile`` above ``depth_bits`` bits of depth key, so one radix sort over the key's
 used bits orders intersections by camera, then tile, then depth. The depth key is
 ``(float32 bits of depth - depth_base) >> depth_shift``: a positive float32 sorts like its bit pattern, and
 subtracting the smallest visible pattern (``depth_base``) keeps only the bits the depths of one call span. The
@@ -174,8 +174,8 @@ def emit_intersections(
     values: wp.array(dtype=wp.int32),
 ):
     """Write the keys and values of every intersection of one projected Gaussian (one thread per row, from row
-    ``first_row`` on: the CPU splits the rows over threads), the first
-    ``capacity`` of them, and pad the buffers from the intersection count up to ``capacity``; thread 0 also
+    ``first_row`` on: the CPU splits the rows over threads; the tiles it reaches, as the projection counted them),
+    the first ``capacity`` of them, and pad the buffers from the intersection count up to ``capacity``; thread 0 also
     publishes the call's :func:`sort_key_layout` in ``flags`` at :data:`KEY_LAYOUT` (for the host).
 
     With ``capacity`` >= the count every intersection is written and the rest of the capacity holds
