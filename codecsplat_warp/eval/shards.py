@@ -26,7 +26,7 @@ import shutil
 import signal
 import sys
 import traceback
-from dataclasses import asdict, replace
+from dataclasses import replace
 from multiprocessing.connection import wait
 from typing import Callable, Sequence
 
@@ -36,7 +36,7 @@ from tqdm.auto import tqdm
 from ..device import available_cores, resolve_device, set_cpu_threads
 from ..errors import CodecSplatError, DataError, InputError, NoSamplesError, ShardError
 from ..model.pretrained import load_pretrained
-from .evaluate import (EvalConfig, check_config, evaluate, no_samples_error, plan_scenes, result_files,
+from .evaluate import (EvalConfig, check_config, evaluate, no_samples_error, plan_scenes, results_header,
                        write_results)
 from .report import Row
 
@@ -397,10 +397,7 @@ def _merge(config: EvalConfig, device: torch.device, scenes: list[str], shards: 
                 shutil.copyfile(source, out / "renders" / f"{key[0]}-{number}.png")
     rows = sorted((Row(**row) for result in results for row in result["rows"]), key=lambda row: position[row.scene])
     first = next(result for result in results if result["plan"])  # the first worker that had samples
-    header = {
-        "config": {**asdict(config), "protocol": asdict(protocol)}, "device": str(device), "machine": first["machine"],
-        "model_id": first["model_id"], "scenes": sorted({key[0] for *_, key in samples}), "skipped": skipped,
-        "lpips": first["lpips"], "files": {role: str(path) for role, path in result_files(out).items()},
-        "plan": [key for *_, key in samples], "rdo": first["rdo"],
-    }
+    header = results_header(config, device, machine=first["machine"], model=first["model_id"],
+                            scenes=[key[0] for *_, key in samples], skipped=skipped, lpips=first["lpips"],
+                            plan=[key for *_, key in samples], rdo=first["rdo"])
     return write_results(header, rows, config.mvs_depth, [note for result in results for note in result["notes"]])
