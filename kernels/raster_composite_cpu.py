@@ -20,7 +20,7 @@ Two tests leave out rows that cannot contribute, without changing which rows are
 The backward walks each pixel's rows back to front from the index the forward saved, as the CUDA kernel does, and
 adds the gradient of every (pixel, row) pair to that row's *intersection* with the tile: row ``grads`` of the
 intersection buffer ``[M, 10]``, indexed by the position at which :func:`.raster_tiles.emit_intersections` wrote the
-intersection (:func:`.raster_tiles.intersection_position`). Only the tile's thread writes its intersections, pixel
+intersection (the binning sorts those positions beside the keys and gathers the row ids from them). Only the tile's thread writes its intersections, pixel
 after pixel in a fixed order, without atomics. :func:`sum_intersection_gradients` then adds the intersections of each
 row (consecutive positions) in a fixed order. Renders and gradients are therefore bit-identical for any split of
 the tiles over threads. Sums are formed in another order than the CUDA kernel's (which sums over a warp by
@@ -38,7 +38,6 @@ from .raster_reach import reach_power, skip_power
 from .raster_row import (
     ALPHA_THRESHOLD, CONIC_A, CONIC_B, CONIC_C, DEPTH, MAX_ALPHA, MEAN_X, MEAN_Y, OPACITY, ROW_WIDTH,
 )  # fmt: skip
-from .raster_tiles import intersection_position
 
 wp.set_module_options({"enable_backward": False})
 
@@ -205,15 +204,12 @@ def composite_backward_tiles(
     line_powers: wp.array(dtype=wp.float64),
     line_rows: wp.array(dtype=wp.int32),
     line_masks: wp.array(dtype=wp.uint32),
-    radii: wp.array(dtype=wp.vec2i),
-    counts: wp.array(dtype=wp.int64),
-    inclusive_offsets: wp.array(dtype=wp.int64),
+    positions: wp.array(dtype=wp.int32),
     state: wp.array2d(dtype=Any),
     last_index: wp.array(dtype=wp.int32),
     grad_color: wp.array2d(dtype=Any),
     grad_depth: wp.array(dtype=Any),
     grad_alpha: wp.array(dtype=Any),
-    positions: wp.array(dtype=wp.int32),
     grad_intersections: wp.array2d(dtype=Any),
 ):
     """Add d loss / d row of every contributing (pixel, row) pair of tile ``first_tile + tid`` to the row's
@@ -223,9 +219,7 @@ def composite_backward_tiles(
         ranges, sorted_ids, splats, background, state, last_index, grad_*: as in
             :func:`.raster_composite.composite_kernels`' ``composite_backward``.
         skip_powers, line_powers: ``[M]`` as the forward wrote them; line_rows, line_masks: ``[M]`` scratch.
-        radii, counts, inclusive_offsets: the binning's inputs (``[B*N]``), to find where each intersection was
-            emitted.
-        positions: ``[M]`` int32 scratch: the emitted position of each sorted intersection of the tile.
+        positions: ``[M]`` int32, the position at which the binning emitted each sorted intersection.
         grad_intersections: ``[M, 10]`` zero-initialised, by emitted position; the depth column is left alone
             when ``grad_depth`` is empty.
     """
@@ -234,11 +228,6 @@ def composite_backward_tiles(
     camera = corner[0]
     start = ranges[tile, 0]
     end = ranges[tile, 1]
-    for t in range(start, end):
-        row = sorted_ids[t]
-        positions[t] = intersection_position(splats, radii, counts, inclusive_offsets, row, line_powers[t], corner[1],
-                                             corner[2], tile_size, tiles_x, tiles_per_image // tiles_x, width,
-                                             height)  # fmt: skip
     zero = grad_intersections.dtype(0.0)
     half = grad_intersections.dtype(0.5)
     columns = wp.where(grad_depth.shape[0] > 0, ROW_WIDTH, DEPTH)  # no depth gradient: the last column stays 0

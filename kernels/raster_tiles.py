@@ -235,31 +235,6 @@ def emit_intersections(
 
 
 @wp.func
-def intersection_position(
-    splats: wp.array2d(dtype=Any), radii: wp.array(dtype=wp.vec2i), counts: wp.array(dtype=wp.int64),
-    inclusive_offsets: wp.array(dtype=wp.int64), row: int, reach: wp.float64, tx: int, ty: int, tile_size: int,
-    tiles_x: int, tiles_y: int, width: int, height: int,
-):  # fmt: skip
-    """The position at which :func:`emit_intersections` wrote the intersection of projected row ``row`` with tile
-    ``(tx, ty)`` of the row's image (a tile it reached): a row's intersections follow the reached tiles of its
-    rectangle row by row, from ``inclusive_offsets[row] - counts[row]`` on. ``reach``: the row's
-    :func:`.raster_reach.row_reach`."""
-    mean_x = splats[row, MEAN_X]
-    mean_y = splats[row, MEAN_Y]
-    a = splats[row, CONIC_A]
-    b = splats[row, CONIC_B]
-    c = splats[row, CONIC_C]
-    rect = tile_rect(mean_x, mean_y, radii[row], tile_size, tiles_x, tiles_y)
-    position = int(inclusive_offsets[row] - counts[row])
-    for y in range(rect[1], ty + 1):
-        last_x = wp.where(y == ty, tx, rect[2])
-        for x in range(rect[0], last_x):
-            if tile_reached(mean_x, mean_y, a, b, c, reach, x, y, tile_size, width, height):
-                position += 1
-    return position
-
-
-@wp.func
 def key_tile(key: Any, depth_bits: int):
     """The flat tile index of a sort key."""
     return int(wp.int64(key) >> wp.int64(depth_bits))

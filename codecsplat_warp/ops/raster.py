@@ -611,9 +611,12 @@ class _BlockComposite(NamedTuple):
     block_dim: int
     blocks_per_tile: int
     kernels: tuple
+    uses_positions = False
+    """Whether the binning hands this layout the emitted position of every sorted intersection (see
+    :class:`_TileComposite`)."""
 
-    def forward(self, binning: _Binning, ranges, colors_or_black, sorted_ids: torch.Tensor, outputs: tuple,
-                wdev) -> None:  # fmt: skip
+    def forward(self, binning: _Binning, ranges, colors_or_black, sorted_ids: torch.Tensor, positions: None,
+                outputs: tuple, wdev) -> None:  # fmt: skip
         """Composite into ``outputs`` (see :func:`_composite_outputs`); nothing is kept for the backward."""
         splats, settings = binning.splats, binning.settings
         common = _composite_args(ranges, sorted_ids, splats, colors_or_black, settings) + [self.blocks_per_tile]
@@ -633,23 +636,27 @@ class _BlockComposite(NamedTuple):
 
 class _TileState(NamedTuple):
     """What the tile layout's backward needs from its forward: ``skip_powers [count]`` (the Gaussians' dtype) and
-    ``line_powers [count]`` float64, and the binning's ``radii [B*N, 2]`` int32, ``tile_counts`` and inclusive
-    ``offsets`` ``[B*N]`` int64."""
+    ``line_powers [count]`` float64, and the binning's ``positions [count]`` int32 (where each sorted intersection
+    was emitted), ``tile_counts`` and inclusive ``offsets`` ``[B*N]`` int64."""
 
     skip_powers: torch.Tensor
     line_powers: torch.Tensor
-    radii: torch.Tensor
+    positions: torch.Tensor
     tile_counts: torch.Tensor
     offsets: torch.Tensor
 
 
 class _TileComposite:
     """The CPU tile layout (:mod:`~codecsplat_warp.kernels.raster_composite_cpu`); stateless (one instance,
-    :data:`_TILE_COMPOSITE`)."""
+    :data:`_TILE_COMPOSITE`). Its backward adds each intersection's gradient at the position the binning emitted
+    it, so the binning sorts those positions (:func:`_bin` with ``positions``)."""
 
-    def forward(self, binning: _Binning, ranges, colors_or_black, sorted_ids: torch.Tensor, outputs: tuple,
-                wdev) -> _TileState:  # fmt: skip
-        """Composite into ``outputs`` (see :func:`_composite_outputs`); returns what the backward needs."""
+    uses_positions = True
+
+    def forward(self, binning: _Binning, ranges, colors_or_black, sorted_ids: torch.Tensor, positions: torch.Tensor,
+                outputs: tuple, wdev) -> _TileState:  # fmt: skip
+        """Composite into ``outputs`` (see :func:`_composite_outputs`); returns what the backward needs
+        (``positions``: where each of the ``sorted_ids`` was emitted)."""
         splats, settings = binning.splats, binning.settings
         count = sorted_ids.shape[0]
         skip_powers = splats.new_empty(count)
@@ -662,7 +669,7 @@ class _TileComposite:
                                *_line_scratch(sorted_ids), *outputs], wdev, layout=splats.dtype)
             for first, tiles in _tile_runs(ranges)
         ])  # fmt: skip
-        return _TileState(skip_powers, line_powers, binning.radii, binning.tile_counts, binning.offsets)
+        return _TileState(skip_powers, line_powers, positions, binning.tile_counts, binning.offsets)
 
     def backward(self, saved: _Saved, colors_or_black, settings: _Settings, output_grads: list, wdev) -> torch.Tensor:
         """The gradient of the projected rows ``[B*N, 10]`` from the gradients of the flat outputs: per
@@ -670,13 +677,11 @@ class _TileComposite:
         splats, tiles = saved.splats, saved.composite_state
         count = saved.sorted_ids.shape[0]
         grad_intersections = splats.new_zeros(count, raster_row.ROW_WIDTH)
-        positions = saved.sorted_ids.new_empty(count)
         common = _composite_args(saved.ranges, saved.sorted_ids, splats, colors_or_black, settings)
         run_concurrently([
             functools.partial(launch, raster_composite_cpu.composite_backward_tiles, tiles_in_run,
                               [*common, first, tiles.skip_powers, tiles.line_powers, *_line_scratch(saved.sorted_ids),
-                               vectors(tiles.radii), tiles.tile_counts, tiles.offsets, saved.state, saved.last,
-                               *output_grads, positions, grad_intersections],
+                               tiles.positions, saved.state, saved.last, *output_grads, grad_intersections],
                               wdev, layout=splats.dtype)
             for first, tiles_in_run in _tile_runs(saved.ranges)
         ])  # fmt: skip
@@ -1014,9 +1019,10 @@ def _bin_and_composite(binning: _Binning, ranges: torch.Tensor, colors_or_black:
     guess = None if speculation_shape is None else _speculation(speculation_shape, max_bytes)
     outputs = None
     if guess is not None:
-        sorted_ids, read = _bin(binning, guess.capacity, guess.key_dtype, guess.end_bit, ranges, wdev, stage=True)
+        sorted_ids, positions, read = _bin(binning, guess.capacity, guess.key_dtype, guess.end_bit, ranges, wdev,
+                                           stage=True, positions=composite.uses_positions)
         outputs = _composite_outputs(binning.num_cameras, settings, splats)
-        state = composite.forward(binning, ranges, colors_or_black, sorted_ids, outputs, wdev)
+        state = composite.forward(binning, ranges, colors_or_black, sorted_ids, positions, outputs, wdev)
     else:
         no_keys, no_values = (_zero_length(splats.device, dtype, ()) for dtype in (torch.uint32, torch.int32))
         _emit(binning, 0, no_keys, no_values, wdev)  # only publishes the key layout
@@ -1028,10 +1034,11 @@ def _bin_and_composite(binning: _Binning, ranges: torch.Tensor, colors_or_black:
         if guess is not None:
             sorted_ids = None  # the failed guess's buffers go before the exact ones are allocated
             ranges.zero_()
-        sorted_ids = _bin(binning, count, key.dtype, key.bits, ranges, wdev)[0]
+        sorted_ids, positions, _ = _bin(binning, count, key.dtype, key.bits, ranges, wdev,
+                                        positions=composite.uses_positions)
         if outputs is None:
             outputs = _composite_outputs(binning.num_cameras, settings, splats)
-        state = composite.forward(binning, ranges, colors_or_black, sorted_ids, outputs, wdev)
+        state = composite.forward(binning, ranges, colors_or_black, sorted_ids, positions, outputs, wdev)
     if speculation_shape is not None:
         _remember(speculation_shape, count, key)
     return count, sorted_ids, outputs, state
@@ -1056,18 +1063,27 @@ def _read_binning(read, max_bytes: int) -> tuple[int, SortKey]:
 
 
 def _bin(binning: _Binning, capacity: int, key_dtype: torch.dtype, end_bit: int, ranges: torch.Tensor, wdev,
-         stage: bool = False) -> tuple[torch.Tensor, object]:  # fmt: skip
+         stage: bool = False, positions: bool = False) -> tuple[torch.Tensor, torch.Tensor | None, object]:
     """Emit up to ``capacity`` intersections with keys of ``key_dtype``, sort them by key bits ``[0, end_bit)`` and
     fill the per-tile ranges ``[B*tiles, 2]`` (int32, zero on entry). Returns the sorted row ids ``[capacity]``
-    (int32; from the count on, padding) and, with ``stage``, the host read staged after the emit launch (which
-    publishes the key layout), else None."""
+    (int32; from the count on, padding); with ``positions`` the position at which each sorted intersection was
+    emitted ``[capacity]`` (int32; the sort carries the positions and the row ids are gathered from them), else
+    None; and with ``stage`` the host read staged after the emit launch (which publishes the key layout), else
+    None."""
     keys, values = _sort_buffers(binning.ints, capacity, key_dtype)
     _emit(binning, capacity, keys, values, wdev)
     read = stage_host_values(binning.ints, wdev, *_read_span(binning)) if stage else None
+    emitted_rows = None
+    if positions:
+        emitted_rows = values[:capacity].clone()
+        torch.arange(capacity, dtype=torch.int32, out=values[:capacity])
     radix_sort_pairs(keys, values, capacity, end_bit)
     launch(raster_tiles.tile_ranges, capacity, [keys, binning.offsets, binning.flags, capacity, ranges], wdev,
            layout=key_dtype)  # fmt: skip
-    return values[:capacity], read
+    if emitted_rows is None:
+        return values[:capacity], None, read
+    order = values[:capacity]
+    return emitted_rows[order.long()], order, read
 
 
 def _empty_render(means, viewmats, background, settings: _Settings):
