@@ -349,8 +349,10 @@ def _top_work(averages, device: torch.device) -> list[dict]:
     (kernels replayed from the decoder's CUDA graphs included, where the parts cannot see them), on the CPU the
     operators by their own CPU time; each ``{"name", "ms", "calls"}``."""
     if device.type == "cuda":
+        # the model's record_function ranges (the parts' names) also show on the GPU timeline: not kernels
         rows = [(e.key, e.self_device_time_total, e.count) for e in averages
-                if e.device_type == torch.autograd.DeviceType.CUDA and e.self_device_time_total > 0]
+                if e.device_type == torch.autograd.DeviceType.CUDA and e.self_device_time_total > 0
+                and e.key not in RDO_PROFILE_PARTS]
     else:
         rows = [(e.key, e.self_cpu_time_total, e.count) for e in averages if e.self_cpu_time_total > 0]
     rows.sort(key=lambda row: -row[1])
