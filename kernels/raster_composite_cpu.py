@@ -20,11 +20,12 @@ Two tests leave out rows that cannot contribute, without changing which rows are
 The backward walks each pixel's rows back to front from the index the forward saved, as the CUDA kernel does, and
 adds the gradient of every (pixel, row) pair to that row's *intersection* with the tile: row ``grads`` of the
 intersection buffer ``[M, 10]``, indexed by the position at which :func:`.raster_tiles.emit_intersections` wrote the
-intersection (the binning sorts those positions beside the keys and gathers the row ids from them). Only the tile's thread writes its intersections, pixel
-after pixel in a fixed order, without atomics. :func:`sum_intersection_gradients` then adds the intersections of each
-row (consecutive positions) in a fixed order. Renders and gradients are therefore bit-identical for any split of
-the tiles over threads. Sums are formed in another order than the CUDA kernel's (which sums over a warp by
-shuffles, then across warps by atomics), so gradients agree with it to float rounding, not bit for bit.
+intersection (the binning sorts those positions beside the keys and gathers the row ids from them). Only the tile's
+thread writes its intersections, pixel after pixel in a fixed order, without atomics.
+:func:`sum_intersection_gradients` then adds the intersections of each row (consecutive positions) in a fixed order.
+Renders and gradients are therefore bit-identical for any split of the tiles over threads. Sums are formed in
+another order than the CUDA kernel's (which sums over a warp by shuffles, then across warps by atomics), so
+gradients agree with it to float rounding, not bit for bit.
 """
 
 from __future__ import annotations
@@ -46,12 +47,6 @@ LINE_SLACK = 1.0e-3
 
 
 @wp.func
-def line_power(splats: wp.array2d(dtype=Any), row: int, skip: Any, rounding: wp.float64):
-    """The threshold of the row's line intervals: its :func:`.raster_reach.reach_power`."""
-    return reach_power(splats[row, CONIC_A], splats[row, CONIC_B], splats[row, CONIC_C], skip, rounding)
-
-
-@wp.func
 def span_mask(first: int, last: int):
     """Bits ``first..last`` (0 <= first <= last < 32) set."""
     return wp.uint32((wp.uint64(1) << wp.uint64(last + 1)) - (wp.uint64(1) << wp.uint64(first)))
@@ -61,7 +56,8 @@ def span_mask(first: int, last: int):
 def line_mask(splats: wp.array2d(dtype=Any), row: int, threshold: wp.float64, py: int, x0: int, count: int):
     """Bit ``k`` set when pixel ``(x0 + k, py)`` (``k < count``) may see the row's power at or below its skip power:
     the pixels whose centre lies in the interval where the row's quadratic power along the line is at most
-    ``threshold`` (:func:`line_power`), widened by :data:`LINE_SLACK`; every pixel when ``threshold`` is inf."""
+    ``threshold`` (the row's :func:`.raster_reach.reach_power`), widened by :data:`LINE_SLACK`; every pixel when
+    ``threshold`` is inf."""
     if not wp.isfinite(threshold):
         return span_mask(0, count - 1)
     a = wp.float64(splats[row, CONIC_A])
@@ -151,7 +147,8 @@ def composite_forward_tiles(
     for t in range(start, end):
         row = sorted_ids[t]
         skip_powers[t] = skip_power(splats[row, OPACITY])
-        line_powers[t] = line_power(splats, row, skip_powers[t], rounding)
+        line_powers[t] = reach_power(splats[row, CONIC_A], splats[row, CONIC_B], splats[row, CONIC_C], skip_powers[t],
+                                     rounding)
     zero = out_alpha.dtype(0.0)
     one = out_alpha.dtype(1.0)
     render_depth = out_depth.shape[0] > 0

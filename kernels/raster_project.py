@@ -368,8 +368,9 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
                 only visible rows, and ten scattered stores per culled Gaussian cost more than the projection).
             first_gaussian: the Gaussian of thread ``(b, 0)``.
             splats: output rows ``[B*N, 10]``; radii: ``[B*N]`` pixel radii (0 = culled);
-            tile_counts: ``[B*N]`` int64 tiles reached (:func:`.raster_tiles.reached_tile_count`); flags: ``[NUM_FLAGS]`` counters (initialised by
-                :func:`prepare_cameras`): validation counts and the range of the visible depths' float32 bits.
+            tile_counts: ``[B*N]`` int64 tiles reached (:func:`.raster_tiles.reached_tile_count`);
+            flags: ``[NUM_FLAGS]`` counters (initialised by :func:`prepare_cameras`): validation counts and the range
+                of the visible depths' float32 bits.
             visible_count: ``[1]`` int64 (zeroed by :func:`prepare_cameras`), visible_rows: ``[B*N]`` int32: the
                 first ``visible_count[0]`` entries receive the flat index of every visible row, in no particular
                 order (the list the differentiable twin walks, so that its work follows the visible Gaussians).

@@ -698,7 +698,6 @@ class _TileComposite:
 _TILE_COMPOSITE = _TileComposite()
 
 
-
 def _line_scratch(sorted_ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The tile layout's per-line scratch for ``count`` sorted intersections: row list (int32) and masks (uint32)."""
     count = sorted_ids.shape[0]
