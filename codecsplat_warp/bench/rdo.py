@@ -407,4 +407,5 @@ def format_profile(profile: dict) -> str:
     what = "GPU kernels" if profile["clock"] == "GPU kernel time" else "operators"
     top = [{**row, "name": row["name"][:90]} for row in profile["top"]]
     costliest = format_table(top, [("name", what, "s"), ("ms", "ms", ".3f"), ("calls", "calls", "d")])
-    return f"{head}\n{format_table(rows, columns)}\n\nThe {len(top)} costliest {what} of the step (own time):\n{costliest}"
+    return (f"{head}\n{format_table(rows, columns)}\n\n"
+            f"The {len(top)} costliest {what} of the step (own time):\n{costliest}")

@@ -423,7 +423,7 @@ def evaluate(model, config: EvalConfig, device: torch.device,
     out.mkdir(parents=True, exist_ok=True)
     files = result_files(out)
     header = results_header(
-        config, device, machine=machine_name(device), model=model_id(model), scenes=[k[0] for k in plan.keys],
+        config, protocol, device, machine=machine_name(device), model=model_id(model), scenes=[k[0] for k in plan.keys],
         skipped=plan.skipped, lpips=metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1",
         plan=[[s, list(c), list(t)] for s, c, t in plan.keys],
         rdo=[{"method": s.method, "preset": s.preset, "steps": s.resolved_steps, "seed": s.seed} for s in rdo])
@@ -495,13 +495,13 @@ def result_files(out: pathlib.Path) -> dict[str, pathlib.Path]:
             "distortion_vs_time": out / "distortion_vs_time.png"}
 
 
-def results_header(config: EvalConfig, device: torch.device, *, machine: str, model: str, scenes: list[str],
-                   skipped: list[dict], lpips: str, plan: list, rdo: list[dict]) -> dict:
-    """The header of an evaluation's results, which :func:`write_results` completes: the config with its protocol,
-    the device and ``machine`` it ran on, the ``model`` id, the ``scenes`` evaluated (sorted, once each) and those
-    ``skipped``, the ``lpips`` note, the files it writes in ``config.out``, the ``plan`` (scene, context and target
-    views of every sample, in order) and the ``rdo`` settings."""
-    return {"config": {**asdict(config), "protocol": asdict(_protocol(config))}, "device": str(device), "machine": machine,
+def results_header(config: EvalConfig, protocol: Protocol, device: torch.device, *, machine: str, model: str,
+                   scenes: list[str], skipped: list[dict], lpips: str, plan: list, rdo: list[dict]) -> dict:
+    """The header of an evaluation's results, which :func:`write_results` completes: the config with its checked
+    ``protocol`` (:func:`check_config`), the device and ``machine`` it ran on, the ``model`` id, the ``scenes``
+    evaluated (sorted, once each) and those ``skipped``, the ``lpips`` note, the files it writes in ``config.out``,
+    the ``plan`` (scene, context and target views of every sample, in order) and the ``rdo`` settings."""
+    return {"config": {**asdict(config), "protocol": asdict(protocol)}, "device": str(device), "machine": machine,
             "model_id": model, "scenes": sorted(set(scenes)), "skipped": skipped, "lpips": lpips,
             "files": {role: str(path) for role, path in result_files(pathlib.Path(config.out)).items()},
             "plan": plan, "rdo": rdo}

@@ -397,7 +397,7 @@ def _merge(config: EvalConfig, device: torch.device, scenes: list[str], shards: 
                 shutil.copyfile(source, out / "renders" / f"{key[0]}-{number}.png")
     rows = sorted((Row(**row) for result in results for row in result["rows"]), key=lambda row: position[row.scene])
     first = next(result for result in results if result["plan"])  # the first worker that had samples
-    header = results_header(config, device, machine=first["machine"], model=first["model_id"],
+    header = results_header(config, protocol, device, machine=first["machine"], model=first["model_id"],
                             scenes=[key[0] for *_, key in samples], skipped=skipped, lpips=first["lpips"],
                             plan=[key for *_, key in samples], rdo=first["rdo"])
     return write_results(header, rows, config.mvs_depth, [note for result in results for note in result["notes"]])
