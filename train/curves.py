@@ -7,7 +7,13 @@ Each metric gets a panel against step; with ``--against-time`` a second row plot
 seconds (``elapsed_s``, logged by :mod:`train.stage1`). The table (stdout, and JSON with ``--json``) gives per
 run: logged steps, scenes per second (``scenes`` per step over the ``elapsed_s`` between the first and the
 last record, so the first record's start-up and compilation time is left out) and the mean of each metric
-over the steps every run logged (a like-for-like comparison of runs of different lengths).
+over the steps every run logged (a like-for-like comparison of runs of different lengths). Runs that recorded
+their process count (``world_size`` in ``config.json``; torchrun runs) also get their GPUs and the scaling
+efficiency against the first run: scenes per second per GPU over the first run's (1.0 is linear scaling; give runs
+of equal per-GPU batch).
+
+    torchrun --nproc_per_node 4 -m train.stage1 --time-limit-s 120 --out runs/s1-4gpu ...
+    python -m train.curves runs/s1-1gpu runs/s1-2gpu runs/s1-4gpu --metrics loss --out scaling.png
 """
 
 from __future__ import annotations
@@ -41,8 +47,10 @@ def throughput(records: list[dict]) -> float | None:
     return scenes / (timed[-1]["elapsed_s"] - timed[0]["elapsed_s"])
 
 
-def compare(runs: dict[str, list[dict]], metrics: list[str]) -> list[dict]:
-    """One row per run: steps logged, scenes/s, and each metric's mean over the steps that every run logged.
+def compare(runs: dict[str, list[dict]], metrics: list[str], gpus: dict[str, int] | None = None) -> list[dict]:
+    """One row per run: steps logged, scenes/s, and each metric's mean over the steps that every run logged; with
+    ``gpus`` (each run's process count), also the GPUs and the scaling efficiency (scenes/s per GPU over the
+    first run's).
 
     Raises:
         InputError: no step was logged by every run.
@@ -51,9 +59,14 @@ def compare(runs: dict[str, list[dict]], metrics: list[str]) -> list[dict]:
     if not common:
         raise InputError("the runs have no logged step in common (different --log-every?)")
     rows = []
+    first = next(iter(runs))
+    base = throughput(runs[first]) / gpus[first] if gpus and throughput(runs[first]) else None
     for label, records in runs.items():
         rate = throughput(records)
         row = {"run": label, "last step": records[-1]["step"], "scenes/s": round(rate, 2) if rate else None}
+        if gpus:
+            row["GPUs"] = gpus[label]
+            row["scaling"] = round(rate / gpus[label] / base, 3) if rate and base else None
         shared = [r for r in records if r["step"] in common]
         for name in metrics:
             values = [r[name] for r in shared if name in r]
@@ -124,22 +137,32 @@ def main(argv: list[str] | None = None) -> None:
     if len(labels) != len(args.runs):
         raise InputError(f"{len(args.runs)} runs but {len(labels)} labels")
     runs = {label: read_metrics(_folder(path)) for label, path in zip(labels, args.runs)}
+    worlds = {label: _world_size(_folder(path)) for label, path in zip(labels, args.runs)}
     for label, records in runs.items():
         if not records:
             raise InputError(f"run {label!r} has no logged steps")
     metrics = [m for m in args.metrics.split(",") if m]
-    rows = compare(runs, metrics)
+    rows = compare(runs, metrics, worlds if None not in worlds.values() else None)
     if args.smooth < 1:
         raise InputError("--smooth must be >= 1")
     plot(runs, metrics, args.out, args.against_time, args.smooth)
     if args.json:
         write_text(args.json, json.dumps(rows, indent=1) + "\n")
-    print(format_table(rows, [(key, key, "" if key in ("run", "last step") else ".4g") for key in rows[0]]))
+    print(format_table(rows, [(key, key, "" if key in ("run", "last step", "GPUs") else ".4g") for key in rows[0]]))
     print(f"wrote {args.out}")
 
 
 def _folder(path: pathlib.Path) -> pathlib.Path:
     return path.parent if path.name == METRICS_FILE else path
+
+
+def _world_size(folder: pathlib.Path) -> int | None:
+    """The process count a run recorded in its config.json (None: not recorded, or no readable config.json)."""
+    try:
+        world = json.loads((folder / "config.json").read_text()).get("world_size")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return world if isinstance(world, int) and world >= 1 else None
 
 
 if __name__ == "__main__":

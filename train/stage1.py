@@ -451,7 +451,8 @@ def train(config: TrainConfig, source: BatchSource | None = None, model_config: 
             raise CodecSplatError("TensorBoard logging needs the train extra: pip install -e '.[train]'") from exc
 
         out.mkdir(parents=True, exist_ok=True)
-        (out / "config.json").write_text(json.dumps({"train": asdict(config), "model": model_config.to_dict()}, indent=1))
+        (out / "config.json").write_text(json.dumps({"train": asdict(config), "model": model_config.to_dict(),
+                                                     "world_size": world}, indent=1))
         writer = SummaryWriter(str(out / "tensorboard"), purge_step=start)
         truncate_metrics(out / METRICS_FILE, start)
     bar = tqdm(total=config.steps, initial=start, disable=not progress or rank != 0, desc=stage.name, dynamic_ncols=True)
@@ -460,6 +461,7 @@ def train(config: TrainConfig, source: BatchSource | None = None, model_config: 
     began = last_log = time.monotonic()
     scenes_since_log = 0
     stop_requested = threading.Event()
+    votes = StopVote(world, device)
     previous_handler = signal.signal(signal.SIGTERM, lambda *_: stop_requested.set())
     try:
         for step, batches in zip(range(start, config.steps), _micro_batches(loader, config.accumulate)):
@@ -485,8 +487,8 @@ def train(config: TrainConfig, source: BatchSource | None = None, model_config: 
                         writer.add_scalar(f"train/{name}", value, step + 1)
                     append_metrics(out / METRICS_FILE, {"step": step + 1, **logged,
                                                         "elapsed_s": round(now - began, 3)})
-            stop = stop_requested.is_set() or (config.time_limit_s > 0 and time.monotonic() - began > config.time_limit_s)
-            stop = _agree(stop, world, device)
+            stop = votes.cast(stop_requested.is_set() or
+                              (config.time_limit_s > 0 and time.monotonic() - began > config.time_limit_s))
             if (step + 1) % config.checkpoint_every == 0 or step + 1 == config.steps or stop:
                 if rank == 0:
                     save_checkpoint(out, step + 1, model, optimizer, scheduler, extra, keep=config.keep_checkpoints,
@@ -505,13 +507,47 @@ def train(config: TrainConfig, source: BatchSource | None = None, model_config: 
     return read_metrics_back(metrics)
 
 
-def _agree(stop: bool, world: int, device: torch.device) -> bool:
-    """True on every rank when any rank wants to stop (so all ranks save and leave at the same step)."""
-    if world <= 1:
-        return stop
-    flag = torch.tensor([float(stop)], device=device)
-    dist.all_reduce(flag, op=dist.ReduceOp.MAX)
-    return bool(flag.item())
+class StopVote:
+    """Whether any rank wants to stop, agreed by every rank without making a step wait for the GPU.
+
+    With one process the wish counts at once. With several, :meth:`cast` starts a MAX all-reduce of this rank's wish
+    behind the step's work and returns the agreed wish cast one step earlier, whose result the GPU has by then
+    (nearly always) copied to page-locked host memory: reading the vote of the current step instead would hold the
+    host until the GPU finished the step, and leave the GPU idle while the host then prepares the next one. All ranks
+    read the same vote at the same step, so they stop together, one step after the first wish.
+    """
+
+    def __init__(self, world: int, device: torch.device):
+        self.world = world
+        self.device = device
+        self.pending: tuple[torch.Tensor, torch.cuda.Event | None] | None = None
+
+    def cast(self, stop: bool) -> bool:
+        """Cast this step's wish; returns True on every rank when any rank wished to stop at the step before
+        (with one process: when this one wishes to stop now)."""
+        if self.world <= 1:
+            return stop
+        agreed = self._read(self.pending)
+        flag = torch.full((1,), float(stop), device=self.device)
+        dist.all_reduce(flag, op=dist.ReduceOp.MAX, async_op=True).wait()  # on CUDA: the stream waits, not the host
+        if self.device.type == "cuda":
+            host = torch.empty(1, pin_memory=True)
+            host.copy_(flag, non_blocking=True)
+            done = torch.cuda.Event()
+            done.record()
+            self.pending = host, done
+        else:
+            self.pending = flag, None
+        return agreed
+
+    @staticmethod
+    def _read(pending: tuple[torch.Tensor, torch.cuda.Event | None] | None) -> bool:
+        if pending is None:
+            return False
+        value, done = pending
+        if done is not None:
+            done.synchronize()
+        return bool(value.item() > 0)
 
 
 def _loader(source: BatchSource, start: int, steps: int, rank: int, world: int, accumulate: int, workers: int,
