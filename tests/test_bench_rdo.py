@@ -81,16 +81,20 @@ def test_settings_take_their_fields_types():
         parse_settings("cuda_graphs=maybe")
 
 
-def test_two_workers_give_the_rows_of_one_process(workspace):
+def test_workers_give_the_rows_of_one_process(workspace):
     write_scene(workspace / "scenes" / "b", seed=5)
     try:
-        args = ("--lambdas", "64", "--steps", "0,2")
-        one, two = bench(workspace, *args), bench(workspace, *args, "--workers", "2")
+        args = ("--lambdas", "64,256", "--steps", "0,2")
+        one, three = bench(workspace, *args), bench(workspace, *args, "--workers", "3")
     finally:
         import shutil
         shutil.rmtree(workspace / "scenes" / "b")
-    assert two["workers"] == 2 and one["workers"] == 1
-    assert [(r["scene"], r["method"], r.get("steps")) for r in two["rows"]] == \
-        [(r["scene"], r["method"], r.get("steps")) for r in one["rows"]]
-    for a, b in zip(one["rows"], two["rows"]):
+    # (sample, lambda) pairs are the units: 4 over 3 workers, so both samples' lambdas are split between workers
+    assert three["workers"] == 3 and one["workers"] == 1
+    order = [(r["scene"], r["method"], r.get("lambda"), r.get("steps")) for r in one["rows"]]
+    assert order == [(scene, method, lam, steps) for scene in ("a", "b") for method, lam, steps in
+                     [("copy nearest", None, None), ("codec-free", None, None),
+                      *(("codecsplat", lam, n) for lam in (64.0, 256.0) for n in (0, 2))]]
+    assert [(r["scene"], r["method"], r.get("lambda"), r.get("steps")) for r in three["rows"]] == order
+    for a, b in zip(one["rows"], three["rows"]):
         assert a.get("bytes") == b.get("bytes") and a["psnr"] == pytest.approx(b["psnr"], abs=1e-4)

@@ -174,9 +174,9 @@ def rdo_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trajectory", action="store_true", help="also score the targets at every check of each "
                         "run (stored per row; the checks' scoring then counts in the encode seconds)")
     parser.add_argument("--workers", type=int, default=None,
-                        help="worker processes the samples are spread over, round-robin over the visible GPUs "
-                        "(default: one per visible GPU with --device cuda/auto, else 1); workers sharing a GPU slow "
-                        "each other's encode seconds")
+                        help="worker processes the (sample, lambda) pairs are dealt over, round-robin over the "
+                        "visible GPUs (default: one per visible GPU with --device cuda/auto, else 1); workers sharing "
+                        "a GPU slow each other's encode seconds")
     parser.add_argument("--profile", action="store_true", help="profile one step instead (first sample, first lambda)")
     parser.add_argument("--profile-steps", type=int, default=20,
                         help="unprofiled steps whose median wall time --profile reports (default %(default)s)")

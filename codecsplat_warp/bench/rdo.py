@@ -72,11 +72,11 @@ def run(args: argparse.Namespace) -> dict:
     del model  # each worker loads its own
     job = {"checkpoint": args.checkpoint, "lambdas": lambdas, "steps": steps, "settings": settings,
            "lpips_weights": args.lpips_weights, "pictures": args.pictures, "trajectory": args.trajectory}
-    parts = split_round_robin(samples, min(len(workers), len(samples)))
+    units = [(s, k) for s in range(len(samples)) for k in range(len(lambdas))]
+    parts = [_worker_part(samples, part) for part in split_round_robin(units, min(len(workers), len(units)))]
     results = run_sharded(bench_samples, [(job, part) for part in parts], workers[:len(parts)],
-                          progress=not args.json, desc="bench rdo", unit="sample")
-    position = {_key(sample): i for i, sample in enumerate(samples)}  # the samples' order, whatever the split
-    rows = sorted((row for rows, _ in results for row in rows), key=lambda row: position[_key(row)])
+                          progress=not args.json, desc="bench rdo", unit="sample-lambda")
+    rows = sorted((row for rows, _ in results for row in rows), key=_row_order(samples, lambdas))
     result.update(rows=rows, summary=summarize(rows), lpips=results[0][1])
     if not args.json:
         print(format_summary(result["summary"], result["machine"]))
@@ -85,18 +85,39 @@ def run(args: argparse.Namespace) -> dict:
     return result
 
 
-def bench_samples(shard: tuple[dict, list[Sample]], device: torch.device) -> tuple[list[dict], str]:
-    """One worker's part (:func:`~codecsplat_warp.eval.shards.run_sharded`): the rows of each of its samples
-    (:func:`bench_sample`), in order, and what its LPIPS scores are."""
-    job, samples = shard
+def _worker_part(samples: list[Sample], units: list[tuple[int, int]]) -> list[tuple[Sample, list[int]]]:
+    """A worker's (sample index, lambda index) units as (sample, its lambda indices), each sample once."""
+    lambdas: dict[int, list[int]] = {}
+    for s, k in units:
+        lambdas.setdefault(s, []).append(k)
+    return [(samples[s], ks) for s, ks in lambdas.items()]
+
+
+def _row_order(samples: list[Sample], lambdas: list[float]):
+    """Sort key putting the workers' rows in one process's order: by sample, then the references, then by lambda
+    (the sort is stable, so the step counts of a run stay in order)."""
+    position = {_key(sample): i for i, sample in enumerate(samples)}
+    return lambda row: (position[_key(row)], lambdas.index(row["lambda"]) if "lambda" in row else -1)
+
+
+def bench_samples(shard: tuple[dict, list[tuple[Sample, list[int]]]], device: torch.device) -> tuple[list[dict], str]:
+    """One worker's part (:func:`~codecsplat_warp.eval.shards.run_sharded`): the rows of each of its samples at the
+    lambdas (indices into the job's) dealt to it (:func:`bench_sample`; the references come with a sample's first
+    lambda), and what its LPIPS scores are. The units are (sample, lambda) pairs, not samples, so that a held-out set
+    of a few scenes still spreads evenly over the GPUs."""
+    job, part = shard
     model = pretrained.load_pretrained(job["checkpoint"], device)
     metrics = ImageMetrics(job["lpips_weights"], device)
     perceptual = _perceptual(job["settings"], job["lpips_weights"], device)
-    rows = []
-    for done, sample in enumerate(samples, 1):
-        rows += bench_sample(model, sample.to(device), job["lambdas"], job["steps"], job["settings"], metrics, device,
-                             job["pictures"], perceptual, job["trajectory"])
-        report_progress(done, len(samples))
+    rows, warmed, done, total = [], set(), 0, sum(len(ks) for _, ks in part)
+    for sample, ks in part:
+        shape = tuple(sample.context_images.shape)
+        rows += bench_sample(model, sample.to(device), [job["lambdas"][k] for k in ks], job["steps"], job["settings"],
+                             metrics, device, job["pictures"], perceptual, job["trajectory"], references=0 in ks,
+                             warm_up=shape not in warmed)
+        warmed.add(shape)
+        done += len(ks)
+        report_progress(done, total)
     return rows, metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1"
 
 
@@ -166,9 +187,11 @@ def _samples(args: argparse.Namespace, model) -> list[Sample]:
 
 def bench_sample(model, sample: Sample, lambdas: list[float], steps: list[int], settings: dict,
                  metrics: ImageMetrics, device: torch.device, pictures: str | None,
-                 perceptual: torch.nn.Module | None = None, trajectory: bool = False) -> list[dict]:
-    """Rows of one sample: the references (copy-nearest, codec-free) and one per (lambda, steps); with
-    ``trajectory``, each RDO row also scores the targets at every check of the run (``row["trajectory"]``)."""
+                 perceptual: torch.nn.Module | None = None, trajectory: bool = False, references: bool = True,
+                 warm_up: bool = True) -> list[dict]:
+    """Rows of one sample: the references (copy-nearest, codec-free; with ``references``) and one per (lambda,
+    steps); with ``trajectory``, each RDO row also scores the targets at every check of the run
+    (``row["trajectory"]``). ``warm_up`` first runs a short untimed encode (Warp kernels, the allocator)."""
     def score(rgb: torch.Tensor) -> dict:
         return _target_scores(metrics, rgb, sample)
 
@@ -177,9 +200,11 @@ def bench_sample(model, sample: Sample, lambdas: list[float], steps: list[int], 
     with torch.no_grad():
         free = model.render(model(sample.context_images, sample.context_cameras)["gaussians"],
                             sample.target_cameras)["rgb"]
-    rows = [{**base, "method": "copy nearest", **score(copy)}, {**base, "method": "codec-free", **score(free)}]
-    model.encode_scene(sample.context_images, sample.context_cameras, lambdas[0], steps=min(steps[-1], 2),
-                       rdo_settings=settings, perceptual=perceptual)  # warm-up: kernels, allocator
+    rows = [{**base, "method": "copy nearest", **score(copy)},
+            {**base, "method": "codec-free", **score(free)}] if references else []
+    if warm_up:
+        model.encode_scene(sample.context_images, sample.context_cameras, lambdas[0], steps=min(steps[-1], 2),
+                           rdo_settings=settings, perceptual=perceptual)
     for lam in lambdas:
         renders, titles = [to_uint8_frames(sample.target_images), to_uint8_frames(copy), to_uint8_frames(free)], \
             ["truth", "copy nearest", "codec-free"]
