@@ -44,6 +44,22 @@ def test_cli_writes_the_plot_and_the_table(tmp_path, capsys):
         main([str(tmp_path / "a"), str(tmp_path / "b"), "--labels", "x", "--out", str(tmp_path / "d.png")])
 
 
+def test_runs_that_recorded_their_process_count_get_the_scaling_efficiency(tmp_path, capsys):
+    for name, world, rate in (("one", 1, 0.1), ("four", 4, 0.2)):  # 20 and 40 scenes/s: half of linear
+        (tmp_path / name).mkdir()
+        lines = [json.dumps(r) for r in _records([20, 40, 60], rate, 2 * world, lambda s: 1.0)]
+        (tmp_path / name / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+        (tmp_path / name / "config.json").write_text(json.dumps({"train": {}, "model": {}, "world_size": world}))
+    runs = [str(tmp_path / "one"), str(tmp_path / "four")]
+    main([*runs, "--metrics", "loss", "--out", str(tmp_path / "s.png"), "--json", str(tmp_path / "s.json")])
+    rows = json.loads((tmp_path / "s.json").read_text())
+    assert [(r["GPUs"], r["scaling"]) for r in rows] == [(1, 1.0), (4, 0.5)]
+    assert "| four |" in capsys.readouterr().out
+    (tmp_path / "four" / "config.json").write_text(json.dumps({"train": {}, "model": {}}))  # written before it
+    main([*runs, "--metrics", "loss", "--out", str(tmp_path / "s.png"), "--json", str(tmp_path / "s.json")])
+    assert all("scaling" not in r for r in json.loads((tmp_path / "s.json").read_text()))
+
+
 def test_moving_average_is_trailing():
     assert moving_average([1.0, 3.0, 5.0, 7.0], 2) == [1.0, 2.0, 4.0, 6.0]
     assert moving_average([1.0, 3.0], 1) == [1.0, 3.0]

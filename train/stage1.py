@@ -461,7 +461,6 @@ def train(config: TrainConfig, source: BatchSource | None = None, model_config: 
     began = last_log = time.monotonic()
     scenes_since_log = 0
     stop_requested = threading.Event()
-    votes = StopVote(world, device)
     previous_handler = signal.signal(signal.SIGTERM, lambda *_: stop_requested.set())
     try:
         for step, batches in zip(range(start, config.steps), _micro_batches(loader, config.accumulate)):
@@ -487,8 +486,8 @@ def train(config: TrainConfig, source: BatchSource | None = None, model_config: 
                         writer.add_scalar(f"train/{name}", value, step + 1)
                     append_metrics(out / METRICS_FILE, {"step": step + 1, **logged,
                                                         "elapsed_s": round(now - began, 3)})
-            stop = votes.cast(stop_requested.is_set() or
-                              (config.time_limit_s > 0 and time.monotonic() - began > config.time_limit_s))
+            stop = stop_requested.is_set() or (config.time_limit_s > 0 and time.monotonic() - began > config.time_limit_s)
+            stop = _agree(stop, world, device)
             if (step + 1) % config.checkpoint_every == 0 or step + 1 == config.steps or stop:
                 if rank == 0:
                     save_checkpoint(out, step + 1, model, optimizer, scheduler, extra, keep=config.keep_checkpoints,
@@ -507,47 +506,13 @@ def train(config: TrainConfig, source: BatchSource | None = None, model_config: 
     return read_metrics_back(metrics)
 
 
-class StopVote:
-    """Whether any rank wants to stop, agreed by every rank without making a step wait for the GPU.
-
-    With one process the wish counts at once. With several, :meth:`cast` starts a MAX all-reduce of this rank's wish
-    behind the step's work and returns the agreed wish cast one step earlier, whose result the GPU has by then
-    (nearly always) copied to page-locked host memory: reading the vote of the current step instead would hold the
-    host until the GPU finished the step, and leave the GPU idle while the host then prepares the next one. All ranks
-    read the same vote at the same step, so they stop together, one step after the first wish.
-    """
-
-    def __init__(self, world: int, device: torch.device):
-        self.world = world
-        self.device = device
-        self.pending: tuple[torch.Tensor, torch.cuda.Event | None] | None = None
-
-    def cast(self, stop: bool) -> bool:
-        """Cast this step's wish; returns True on every rank when any rank wished to stop at the step before
-        (with one process: when this one wishes to stop now)."""
-        if self.world <= 1:
-            return stop
-        agreed = self._read(self.pending)
-        flag = torch.full((1,), float(stop), device=self.device)
-        dist.all_reduce(flag, op=dist.ReduceOp.MAX, async_op=True).wait()  # on CUDA: the stream waits, not the host
-        if self.device.type == "cuda":
-            host = torch.empty(1, pin_memory=True)
-            host.copy_(flag, non_blocking=True)
-            done = torch.cuda.Event()
-            done.record()
-            self.pending = host, done
-        else:
-            self.pending = flag, None
-        return agreed
-
-    @staticmethod
-    def _read(pending: tuple[torch.Tensor, torch.cuda.Event | None] | None) -> bool:
-        if pending is None:
-            return False
-        value, done = pending
-        if done is not None:
-            done.synchronize()
-        return bool(value.item() > 0)
+def _agree(stop: bool, world: int, device: torch.device) -> bool:
+    """True on every rank when any rank wants to stop (so all ranks save and leave at the same step)."""
+    if world <= 1:
+        return stop
+    flag = torch.tensor([float(stop)], device=device)
+    dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+    return bool(flag.item())
 
 
 def _loader(source: BatchSource, start: int, steps: int, rank: int, world: int, accumulate: int, workers: int,
