@@ -85,7 +85,7 @@ def test_depth_consistent_across_views_and_with_reproject_average():
         points = unproject(depth, cameras)[0].reshape(-1, 3)
         u, v, z = _project(points, cameras, 1)
         inside = (z > 0) & (u >= 0.5) & (u <= W - 0.5) & (v >= 0.5) & (v <= H - 0.5)
-        centre = cameras.centers[1].expand_as(points)
+        centre = cameras.centers[1]
         t_hit, _ = first_hit(scene.metadata["world"], centre, points - centre)
         visible = inside & ((t_hit - 1).abs() < 1e-6)
         spread = (torch.nn.functional.max_pool2d(depth[1][None], 2, 1) + torch.nn.functional.max_pool2d(-depth[1][None], 2, 1))[0]

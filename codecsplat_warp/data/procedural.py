@@ -130,35 +130,53 @@ def procedural_scene(seed: int, config: ProceduralConfig = ProceduralConfig(), p
     )
 
 
+RAY_CHUNK = 16384
+"""Rays cast at a time: the [rays, primitives] float64 intermediates of a chunk stay in the CPU's cache (a whole
+256x256 batch's are hundreds of MB, which left the data-loader workers of four GPUs waiting on memory bandwidth)."""
+
+
 def render(world: World, cameras: Cameras) -> tuple[torch.Tensor, torch.Tensor]:
-    """Render ``cameras`` by exact ray casting.
+    """Render ``cameras`` by exact ray casting, view by view and :data:`RAY_CHUNK` rays at a time.
 
     Returns:
         rgb float32 [V,3,H,W] in [0,1] and depth float64 [V,H,W] (camera z of the nearest hit).
     """
     cameras = cameras.to("cpu", torch.float64)
-    origins, directions = _pixel_rays(cameras)
-    depth, winner = first_hit(world, origins, directions)
-    if not bool(torch.isfinite(depth).all()):
-        raise DataError("procedural render: a ray hit nothing (the cameras must lie inside the room)")
-    points = origins + depth[:, None] * directions
-    normals, uv, texture = _surface_attributes(world, points, winner)
-    facing = torch.where(((normals * directions).sum(-1, keepdim=True) > 0), -normals, normals)
-    shade = AMBIENT + DIFFUSE * (facing @ world.light).clamp(min=0)
-    colour = _sample_textures(world.textures, texture, uv / world.texture_period) * shade[:, None].float()
     V, H, W = cameras.num_views, cameras.height, cameras.width
+    colours, depths = [], []
+    for origin, directions in zip(cameras.c2w[:, :3, 3], _pixel_directions(cameras)):
+        for chunk in directions.split(RAY_CHUNK):
+            colour, depth = _shade_rays(world, origin, chunk)
+            colours.append(colour)
+            depths.append(depth)
+    colour, depth = torch.cat(colours), torch.cat(depths)
     return colour.reshape(V, H, W, 3).permute(0, 3, 1, 2).contiguous(), depth.reshape(V, H, W)
 
 
-def first_hit(world: World, origins: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Nearest surface along rays ``origins + t * directions`` ([N,3] float64 each, t > 0).
+def _shade_rays(world: World, origin: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Colour [N,3] float32 and depth [N] float64 of the nearest hits of rays from ``origin`` [3] along
+    ``directions`` [N,3] (float64)."""
+    depth, winner = first_hit(world, origin, directions)
+    if not bool(torch.isfinite(depth).all()):
+        raise DataError("procedural render: a ray hit nothing (the cameras must lie inside the room)")
+    points = origin + depth[:, None] * directions
+    normals, uv, texture = _surface_attributes(world, points, winner)
+    facing = torch.where(((normals * directions).sum(-1, keepdim=True) > 0), -normals, normals)
+    shade = AMBIENT + DIFFUSE * (facing @ world.light).clamp(min=0)
+    return _sample_textures(world.textures, texture, uv / world.texture_period) * shade[:, None].float(), depth
+
+
+def first_hit(world: World, origin: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest surface along rays ``origin + t * directions`` (``origin`` [3], ``directions`` [N,3], float64; t > 0).
+
+    One origin for all rays (a pinhole camera's) makes every origin term a per-primitive constant.
 
     Returns:
         t [N] (inf where nothing is hit) and the index [N] of the primitive hit (rectangles, then boxes,
         then spheres).
     """
-    t_all = torch.cat([_hit_rectangles(origins, directions, world), _hit_boxes(origins, directions, world),
-                       _hit_spheres(origins, directions, world)], dim=1)
+    t_all = torch.cat([_hit_rectangles(origin, directions, world), _hit_boxes(origin, directions, world),
+                       _hit_spheres(origin, directions, world)], dim=1)
     return t_all.min(dim=1)
 
 
@@ -351,8 +369,8 @@ def _periodic_noise(generator: torch.Generator, size: int, exponent: float) -> t
 
 # --------------------------------------------------------------------------------------------------
 # Ray casting
-def _pixel_rays(cameras: Cameras) -> tuple[torch.Tensor, torch.Tensor]:
-    """Origins and directions [V*H*W,3] of pixel-centre rays; directions have camera z = 1, so t is depth."""
+def _pixel_directions(cameras: Cameras) -> torch.Tensor:
+    """Directions [V,H*W,3] of each view's pixel-centre rays (from its camera centre); camera z = 1, so t is depth."""
     V, H, W = cameras.num_views, cameras.height, cameras.width
     rows, cols = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5,
                                 indexing="ij")
@@ -360,47 +378,42 @@ def _pixel_rays(cameras: Cameras) -> tuple[torch.Tensor, torch.Tensor]:
     x = (cols[None] - K[:, 0, 2, None, None]) / K[:, 0, 0, None, None]
     y = (rows[None] - K[:, 1, 2, None, None]) / K[:, 1, 1, None, None]
     camera_dirs = torch.stack([x, y, torch.ones_like(x)], dim=-1)
-    c2w = cameras.c2w
-    directions = torch.einsum("vij,vhwj->vhwi", c2w[:, :3, :3], camera_dirs).reshape(-1, 3)
-    origins = c2w[:, None, None, :3, 3].expand(V, H, W, 3).reshape(-1, 3)
-    return origins, directions
+    return torch.einsum("vij,vhwj->vhwi", cameras.c2w[:, :3, :3], camera_dirs).reshape(V, H * W, 3)
 
 
-def _hit_rectangles(origins: torch.Tensor, directions: torch.Tensor, world: World) -> torch.Tensor:
+def _hit_rectangles(origin: torch.Tensor, directions: torch.Tensor, world: World) -> torch.Tensor:
     """[N,P] ray parameter of the hit with each rectangle (inf on a miss)."""
     normals = torch.cross(world.rect_u, world.rect_v, dim=-1)
     denom = directions @ normals.T
-    t = ((world.rect_centre * normals).sum(-1)[None] - origins @ normals.T) / torch.where(denom == 0, 1e-300, denom)
-    coords = []
+    t = ((world.rect_centre - origin) * normals).sum(-1)[None] / torch.where(denom == 0, 1e-300, denom)
+    inside = (t > HIT_EPSILON) & (denom != 0)
     for axis in (world.rect_u, world.rect_v):  # hit point relative to the centre, along each half edge, in [-1,1]
-        offset = origins @ axis.T - (world.rect_centre * axis).sum(-1)[None]
-        coords.append((offset + t * (directions @ axis.T)) / (axis ** 2).sum(-1)[None])
-    a, b = coords
-    inside = (a.abs() <= 1 + HIT_EPSILON) & (b.abs() <= 1 + HIT_EPSILON) & (t > HIT_EPSILON) & (denom != 0)
+        along = axis / (axis ** 2).sum(-1, keepdim=True)
+        inside &= (((origin - world.rect_centre) * along).sum(-1)[None] + t * (directions @ along.T)).abs() \
+            <= 1 + HIT_EPSILON
     return torch.where(inside, t, torch.inf)
 
 
-def _hit_boxes(origins: torch.Tensor, directions: torch.Tensor, world: World) -> torch.Tensor:
+def _hit_boxes(origin: torch.Tensor, directions: torch.Tensor, world: World) -> torch.Tensor:
     """[N,B] ray parameter of the entry into each oriented box (slab method; inf on a miss)."""
     if world.box_centre.shape[0] == 0:
-        return origins.new_full((origins.shape[0], 0), torch.inf)
-    rotation_t = world.box_rotation.transpose(1, 2)
-    o = torch.einsum("bij,nbj->nbi", rotation_t, origins[:, None] - world.box_centre[None])
-    d = torch.einsum("bij,nj->nbi", rotation_t, directions)
-    d = torch.where(d.abs() < 1e-300, 1e-300, d)
-    t1, t2 = (-world.box_half[None] - o) / d, (world.box_half[None] - o) / d
+        return directions.new_full((directions.shape[0], 0), torch.inf)
+    o = torch.einsum("bji,bj->bi", world.box_rotation, origin - world.box_centre)  # [B,3] in each box's axes
+    d = (directions @ world.box_rotation.permute(1, 0, 2).reshape(3, -1)).reshape(-1, *o.shape)  # [N,B,3]
+    inverse = 1.0 / torch.where(d.abs() < 1e-300, 1e-300, d)
+    t1, t2 = (-world.box_half - o) * inverse, (world.box_half - o) * inverse
     t_enter = torch.minimum(t1, t2).amax(-1)
     t_exit = torch.maximum(t1, t2).amin(-1)
     hit = (t_exit >= t_enter) & (t_enter > HIT_EPSILON)
     return torch.where(hit, t_enter, torch.inf)
 
 
-def _hit_spheres(origins: torch.Tensor, directions: torch.Tensor, world: World) -> torch.Tensor:
+def _hit_spheres(origin: torch.Tensor, directions: torch.Tensor, world: World) -> torch.Tensor:
     """[N,S] ray parameter of the nearest hit in front of the origin with each sphere (inf on a miss)."""
-    offset = origins[:, None] - world.sphere_centre[None]
+    offset = origin - world.sphere_centre  # [S,3]
     a = (directions ** 2).sum(-1, keepdim=True)
-    half_b = (offset * directions[:, None]).sum(-1)
-    c = (offset ** 2).sum(-1) - world.sphere_radius[None] ** 2
+    half_b = directions @ offset.T
+    c = ((offset ** 2).sum(-1) - world.sphere_radius ** 2)[None]
     disc = half_b ** 2 - a * c
     root = torch.sqrt(disc.clamp(min=0))
     near_t, far_t = (-half_b - root) / a, (-half_b + root) / a
