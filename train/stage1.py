@@ -134,7 +134,8 @@ OPTION_HELP = {
     "log_every": "log metrics (metrics.jsonl, TensorBoard) every this many steps",
     "seed": "seed of the scene drawing and the initial weights; the same seed draws the same batches",
     "device": "cpu, cuda, cuda:N or auto (CUDA when torch sees a GPU; under torchrun, the local rank's GPU)",
-    "workers": "data-loader processes per training process (CUDA only; 0 on the CPU)",
+    "workers": "data-loader processes per training process (CUDA only; 0 on the CPU): as many as its steps consume, "
+               "since more take CPU from the host-bound steps (docs/training.md, Four GPUs)",
     "time_limit_s": "stop cleanly with a checkpoint after this many seconds of training (0: no limit)",
     "accumulate": "batches per optimiser step per process (global batch = processes x this)",
     "views": "comma list of context view counts, one drawn per batch; list one twice to draw it twice as often "
