@@ -8,10 +8,11 @@ views. Per point: encode seconds (the whole encode: backbone, optimisation, codi
 bytes, target PSNR, SSIM and LPIPS-VGG/Alex (when weights are found), and the context views' PSNR of the decoded
 scene. Copy-the-nearest-view and the codec-free model are scored once per sample as references. The table gives
 the means over samples per (lambda, steps); ``rdo_curve.png`` plots target PSNR, LPIPS-VGG and KiB against mean
-encode seconds, a line per lambda. ``--set key=value,...`` overrides fields of
-:class:`~codecsplat_warp.model.rdo.RDOConfig` (learning rate, loss weights, precision) for experiments, and
-``--pictures DIR`` writes one picture per sample and lambda: the targets' truth, copy-nearest, codec-free and
-every step count.
+encode seconds, a line per lambda. With ``--workers`` the (sample, lambda) pairs are dealt over processes (one per
+visible GPU by default), and each worker's seconds of start, loading and work are printed (``worker_seconds``).
+``--set key=value,...`` overrides fields of :class:`~codecsplat_warp.model.rdo.RDOConfig` (learning rate, loss
+weights, precision) for experiments, and ``--pictures DIR`` writes one picture per sample and lambda: the targets'
+truth, copy-nearest, codec-free and every step count.
 
 **Profile** (``--profile``): one step of the optimisation broken into the codec, the depth head, R_post (the
 reprojection apart), the GS head, the 2D->3D map (unprojection), the rasterizer, the loss and the optimiser, each
@@ -70,16 +71,20 @@ def run(args: argparse.Namespace) -> dict:
             print(format_profile(result["profile"]))
         return result
     del model  # each worker loads its own
-    job = {"checkpoint": args.checkpoint, "lambdas": lambdas, "steps": steps, "settings": settings,
-           "lpips_weights": args.lpips_weights, "pictures": args.pictures, "trajectory": args.trajectory}
     units = [(s, k) for s in range(len(samples)) for k in range(len(lambdas))]
     parts = [_worker_part(samples, part) for part in split_round_robin(units, min(len(workers), len(units)))]
+    started = time.time()
+    job = {"checkpoint": args.checkpoint, "lambdas": lambdas, "steps": steps, "settings": settings,
+           "lpips_weights": args.lpips_weights, "pictures": args.pictures, "trajectory": args.trajectory,
+           "started": started}
     results = run_sharded(bench_samples, [(job, part) for part in parts], workers[:len(parts)],
                           progress=not args.json, desc="bench rdo", unit="sample-lambda")
-    rows = sorted((row for rows, _ in results for row in rows), key=_row_order(samples, lambdas))
-    result.update(rows=rows, summary=summarize(rows), lpips=results[0][1])
+    rows = sorted((row for rows, _, _ in results for row in rows), key=_row_order(samples, lambdas))
+    result.update(rows=rows, summary=summarize(rows), lpips=results[0][1], wall_s=time.time() - started,
+                  worker_seconds=[timing for _, _, timing in results])
     if not args.json:
         print(format_summary(result["summary"], result["machine"]))
+        print(format_worker_seconds(result["wall_s"], result["worker_seconds"]))
     if args.plot:
         plot_curve(result["summary"], pathlib.Path(args.plot))
     return result
@@ -100,16 +105,19 @@ def _row_order(samples: list[Sample], lambdas: list[float]):
     return lambda row: (position[_key(row)], lambdas.index(row["lambda"]) if "lambda" in row else -1)
 
 
-def bench_samples(shard: tuple[dict, list[tuple[Sample, list[int]]]], device: torch.device) -> tuple[list[dict], str]:
+def bench_samples(shard: tuple[dict, list[tuple[Sample, list[int]]]],
+                  device: torch.device) -> tuple[list[dict], str, dict[str, float]]:
     """One worker's part (:func:`~codecsplat_warp.eval.shards.run_sharded`): the rows of each of its samples at the
     lambdas (indices into the job's) dealt to it (:func:`bench_sample`; the references come with a sample's first
-    lambda), and what its LPIPS scores are. The units are (sample, lambda) pairs, not samples, so that a held-out set
-    of a few scenes still spreads evenly over the GPUs."""
+    lambda), what its LPIPS scores are, and where its time went (:func:`format_worker_seconds`). The units are
+    (sample, lambda) pairs, not samples, so that a held-out set of a few scenes still spreads evenly over the GPUs."""
     job, part = shard
+    entered = time.time()
     model = pretrained.load_pretrained(job["checkpoint"], device)
     metrics = ImageMetrics(job["lpips_weights"], device)
     perceptual = _perceptual(job["settings"], job["lpips_weights"], device)
     rows, warmed, done, total = [], set(), 0, sum(len(ks) for _, ks in part)
+    loaded = time.time()
     for sample, ks in part:
         shape = tuple(sample.context_images.shape)
         rows += bench_sample(model, sample.to(device), [job["lambdas"][k] for k in ks], job["steps"], job["settings"],
@@ -118,7 +126,19 @@ def bench_samples(shard: tuple[dict, list[tuple[Sample, list[int]]]], device: to
         warmed.add(shape)
         done += len(ks)
         report_progress(done, total)
-    return rows, metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1"
+    seconds = {"pairs": total, "start_s": entered - job["started"], "load_s": loaded - entered,
+               "work_s": time.time() - loaded}
+    return rows, metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1", seconds
+
+
+def format_worker_seconds(wall_s: float, workers: list[dict[str, float]]) -> str:
+    """A line per worker: its (sample, lambda) pairs, the seconds from the command's split to the worker's first
+    instruction (process start, imports; ~0 for a single worker, which runs in the command's process), loading the
+    model and metrics, and the pairs' work (warm-up encodes included); the wall time of the split first."""
+    lines = [f"{len(workers)} worker(s), {wall_s:.1f} s from the split to the last row"]
+    lines += [f"  worker {k}: {w['pairs']} pairs, start {w['start_s']:.1f} s, load {w['load_s']:.1f} s, "
+              f"work {w['work_s']:.1f} s" for k, w in enumerate(workers)]
+    return "\n".join(lines)
 
 
 def _key(item) -> tuple:
