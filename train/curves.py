@@ -59,10 +59,11 @@ def compare(runs: dict[str, list[dict]], metrics: list[str], gpus: dict[str, int
     if not common:
         raise InputError("the runs have no logged step in common (different --log-every?)")
     rows = []
+    rates = {label: throughput(records) for label, records in runs.items()}
     first = next(iter(runs))
-    base = throughput(runs[first]) / gpus[first] if gpus and throughput(runs[first]) else None
+    base = rates[first] / gpus[first] if gpus and rates[first] else None
     for label, records in runs.items():
-        rate = throughput(records)
+        rate = rates[label]
         row = {"run": label, "last step": records[-1]["step"], "scenes/s": round(rate, 2) if rate else None}
         if gpus:
             row["GPUs"] = gpus[label]

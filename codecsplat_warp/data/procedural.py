@@ -144,7 +144,7 @@ def render(world: World, cameras: Cameras) -> tuple[torch.Tensor, torch.Tensor]:
     cameras = cameras.to("cpu", torch.float64)
     V, H, W = cameras.num_views, cameras.height, cameras.width
     colours, depths = [], []
-    for origin, directions in zip(cameras.c2w[:, :3, 3], _pixel_directions(cameras)):
+    for origin, directions in zip(cameras.centers, _pixel_directions(cameras)):
         for chunk in directions.split(RAY_CHUNK):
             colour, depth = _shade_rays(world, origin, chunk)
             colours.append(colour)
