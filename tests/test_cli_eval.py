@@ -131,7 +131,7 @@ def test_an_interrupted_eval_keeps_the_samples_it_finished(tmp_path, monkeypatch
     for name, seed in (("a", 1), ("b", 2)):
         write_scene(tmp_path / "data" / name, seed=seed, views=3)
 
-    def run_once(self, sample, progress=None):
+    def run_once(self, sample, progress=None, groups=None):
         if (tmp_path / "out" / "results.json").exists():
             raise KeyboardInterrupt
         return [_row(sample.scene, "CodecSplat", "λ=16", 100, 20.0, 16.0)]

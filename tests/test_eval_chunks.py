@@ -140,7 +140,7 @@ def test_chunk_eval_runs_every_indexed_sample_with_the_floor(synthetic, tiny_mod
 def test_an_interrupted_chunk_eval_resumes_where_it_stopped(synthetic, tiny_model, tmp_path, monkeypatch):
     calls = []
 
-    def run(self, sample, progress=None):
+    def run(self, sample, progress=None, groups=None):
         if len(calls) == 2 and interrupt:
             raise KeyboardInterrupt
         calls.append(sample.scene)

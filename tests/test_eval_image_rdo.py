@@ -15,7 +15,7 @@ import codecsplat_warp.eval.report as report
 from codecsplat_warp.baselines import ImageCodec
 from codecsplat_warp.cli import main
 from codecsplat_warp.errors import DataError, InputError
-from codecsplat_warp.eval.evaluate import EvalConfig, Evaluator, RDOSetting, evaluate
+from codecsplat_warp.eval.evaluate import EvalConfig, Evaluator, RDOSetting, evaluate, layout_rows, row_layout
 from codecsplat_warp.eval.protocols import PROTOCOLS, find_scenes, index_samples
 from codecsplat_warp.eval.report import (BACKBONE, CODECSPLAT, COPY_NEAREST, plot_distortion_vs_time,
                                          plot_rate_distortion, table1, table2)
@@ -54,8 +54,9 @@ def test_image_codec_and_rdo_rows_of_one_sample(scenes, model, monkeypatch):
     monkeypatch.setitem(RDO_PRESETS, "medium", 0.25)  # a preset's count, kept tiny (the least, 5 steps for 2 views)
     sample = index_samples(find_scenes(scenes / "data"), scenes / "index.json", PROTOCOLS["scene"])[0]
     codecs = [ImageCodec("webp", 5), ImageCodec("webp", 90), ImageCodec("jpeg", 10)]
+    rdo = [RDOSetting(preset="medium"), RDOSetting(steps=1)]
     evaluator = Evaluator(model, ImageMetrics(None), (64.0,), (), torch.device("cpu"), keep_renders=True,
-                          image_codecs=codecs, rdo=[RDOSetting(preset="medium"), RDOSetting(steps=1)])
+                          image_codecs=codecs, rdo=rdo)
     inputs = []
     forward = model.forward
     monkeypatch.setattr(model, "forward", lambda images, cameras: inputs.append(images) or forward(images, cameras))
@@ -65,7 +66,8 @@ def test_image_codec_and_rdo_rows_of_one_sample(scenes, model, monkeypatch):
         (COPY_NEAREST, "no bitstream"), (CODECSPLAT, "λ=64"), ("CodecSplat RDO (medium)", "λ=64"),
         ("CodecSplat RDO (1 step)", "λ=64"), (BACKBONE + "→PLY", "float32"), ("WebP + codec-free", "q=5"),
         ("WebP + codec-free", "q=90"), ("JPEG + codec-free", "q=10")]
-    assert progress.n == evaluator.steps_per_sample == len(rows) == len(evaluator.renders)
+    assert progress.n == len(rows) == len(evaluator.renders)
+    assert row_layout((64.0,), (), codecs, rdo) == ["base", "base", "medium λ=64", "1 step λ=64"] + ["base"] * 4
     amortised, medium, one = rows[1:4]
     assert amortised.rdo is None and (medium.rdo["steps"], one.rdo["steps"]) == (5, 1)
     assert medium.compress_s > medium.rdo["seconds"] > 0  # the optimisation is compress time
@@ -82,6 +84,11 @@ def test_image_codec_and_rdo_rows_of_one_sample(scenes, model, monkeypatch):
         assert row.quality == codec.quality and row.self_render["psnr"] > 0 and row.depth == {}
         assert min(row.gen_s, row.compress_s, row.decompress_s) > 0
     assert rows[5].bytes < rows[6].bytes
+    # one row group alone: its rows only, the others (the codec-free network of the base rows too) not run
+    alone = evaluator.run(sample, progress, groups={"1 step λ=64"})
+    assert len(inputs) == 1 + len(codecs) and progress.n == len(rows) + 1 and len(evaluator.renders) == 1
+    assert [(r.method, r.setting, r.bytes, r.metrics) for r in alone] == [(one.method, one.setting, one.bytes,
+                                                                          one.metrics)]
 
 
 def _config(scenes, out, **changes) -> EvalConfig:
@@ -95,12 +102,13 @@ def _fake_run(calls: list, interrupt_at: str | None):
     """Evaluator.run that records the sample and returns one row per unit of work, raising KeyboardInterrupt
     at scene ``interrupt_at``."""
 
-    def run(self, sample, progress=None):
+    def run(self, sample, progress=None, groups=None):
         if sample.scene == interrupt_at:
             raise KeyboardInterrupt
         calls.append(sample.scene)
+        layout = row_layout(self.lambdas, self.baselines, self.image_codecs, self.rdo)
         return [report.Row(sample.scene, "m", str(i), 1, {"psnr": 20.0}, 1.0, 1.0, 1.0)
-                for i in range(self.steps_per_sample)]
+                for i in layout_rows(layout, groups)]
 
     return run
 

@@ -54,7 +54,7 @@ import statistics
 import sys
 import time
 from dataclasses import MISSING, asdict, dataclass, fields, replace
-from typing import Callable, Iterator, NamedTuple, Sequence
+from typing import Callable, Collection, Iterator, NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -82,6 +82,8 @@ from .report import (BACKBONE, CODECSPLAT, COPY_NEAREST, Row, format_bytes, imag
 
 SIDE_PARTS = ("header", "cameras")
 """Parts of a CodecSplat bitstream that the image-codec rows count too: the cameras both sides must send."""
+BASE_GROUP = "base"
+"""The row group of a sample's every row but the RDO rows (see :func:`row_layout`)."""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -128,6 +130,28 @@ class RDOSetting:
     def encode_options(self) -> dict:
         """Keyword arguments of :meth:`CodecSplat.encode_scene`."""
         return {"preset": self.preset, "steps": self.steps, "seed": self.seed}
+
+    def group(self, lam: float) -> str:
+        """The row group of its row at ``lam`` (``slow λ=64``, see :func:`row_layout`)."""
+        return f"{self.name} λ={lam:g}"
+
+
+def row_layout(lambdas: Sequence[float], baselines: Collection[str], image_codecs: Sequence[ImageCodec],
+               rdo: Sequence[RDOSetting]) -> list[str]:
+    """The row group of each row :meth:`Evaluator.run` returns for a sample, in its order: :data:`BASE_GROUP` for
+    copy-nearest and CodecSplat at each of ``lambdas``, each RDO setting's :meth:`~RDOSetting.group` at each lambda,
+    then :data:`BASE_GROUP` for the codec-free reference, each of :data:`OUTPUT_BASELINES` in ``baselines`` and each
+    image codec. An evaluation may produce some groups only (:attr:`EvalConfig.units`): the RDO rows, one encode
+    each, are most of its time."""
+    tail = 1 + sum(name in baselines for name in OUTPUT_BASELINES) + len(image_codecs)
+    return ([BASE_GROUP] * (1 + len(lambdas)) + [setting.group(lam) for setting in rdo for lam in lambdas]
+            + [BASE_GROUP] * tail)
+
+
+def layout_rows(layout: list[str], groups: Collection[str] | None) -> list[int]:
+    """The positions in a sample's ``layout`` (:func:`row_layout`) of the rows :meth:`Evaluator.run` returns for
+    ``groups`` (None: every row), in the order it returns them."""
+    return [i for i, group in enumerate(layout) if groups is None or group in groups]
 
 
 @contextlib.contextmanager
@@ -184,11 +208,6 @@ class Evaluator:
         self.image_codecs = list(image_codecs)
         self.rdo = list(rdo)
 
-    @property
-    def steps_per_sample(self) -> int:
-        """Methods run per sample, the rows :meth:`run` returns (progress bar units)."""
-        return 2 + len(self.lambdas) * (1 + len(self.rdo)) + len(self.baselines) + len(self.image_codecs)
-
     def warm_up(self, sample: Sample) -> None:
         """Run the network, codec and renderer once, untimed (loads Warp kernels, warms allocators)."""
         sample = sample.to(self.device)
@@ -199,8 +218,9 @@ class Evaluator:
         if self.rdo:  # the optimisation's backward pass
             self.model.encode(sample.context_images, sample.context_cameras, self.lambdas[0], steps=1)
 
-    def run(self, sample: Sample, progress: tqdm | None = None) -> list[Row]:
-        """Every method's :class:`Row` on one sample."""
+    def run(self, sample: Sample, progress: tqdm | None = None, groups: Collection[str] | None = None) -> list[Row]:
+        """Every method's :class:`Row` on one sample, in the order of :func:`row_layout`; with ``groups``, only the
+        rows of those row groups (:func:`row_layout`), the others not run."""
         reference = self.reference.context_depth(sample) if self.reference is not None else None
         sample = sample.to(self.device)
         rows = []
@@ -212,29 +232,39 @@ class Evaluator:
                 progress.update(1)
             return row
 
-        step(self._copy_nearest(sample))
-        coded = [step(self._codecsplat(sample, lam, reference)) for lam in self.lambdas]
+        base = groups is None or BASE_GROUP in groups
+        if base:
+            step(self._copy_nearest(sample))
+            coded = [step(self._codecsplat(sample, lam, reference)) for lam in self.lambdas]
         for setting in self.rdo:
             for lam in self.lambdas:
-                step(self._codecsplat(sample, lam, reference, setting))
+                if groups is None or setting.group(lam) in groups:
+                    step(self._codecsplat(sample, lam, reference, setting))
+        if base:
+            for row in self._reference_rows(sample, reference, coded[0]):
+                step(row)
+        return rows
+
+    def _reference_rows(self, sample: Sample, reference: torch.Tensor | None, coded: Row) -> Iterator[Row]:
+        """The rows after the CodecSplat ones, each when done: the codec-free reference, the baselines on its output
+        and the image codecs (which count the side parts of ``coded``, a CodecSplat row of the sample)."""
         with torch.no_grad(), self._autocast():
             out, gen_s = timed(lambda: self.model(sample.context_images, sample.context_cameras), self.device)
         gaussians = out["gaussians"].detach()
         codec_free = self._gaussian_codec(sample, BACKBONE + "→PLY", "float32", gaussians, gen_s, encode_ply,
                                           decode_ply)
-        step(replace(codec_free, depth=self._depth_errors(out["D_enc"], reference)))  # the encoder depth D_enc
+        yield replace(codec_free, depth=self._depth_errors(out["D_enc"], reference))  # the encoder depth D_enc
         if "ply" in self.baselines:
-            step(self._gaussian_codec(sample, BACKBONE + "→PLY+Deflate", self.ply_deflate.setting, gaussians, gen_s,
-                                      self.ply_deflate.encode, self.ply_deflate.decode))
+            yield self._gaussian_codec(sample, BACKBONE + "→PLY+Deflate", self.ply_deflate.setting, gaussians, gen_s,
+                                       self.ply_deflate.encode, self.ply_deflate.decode)
         if "png" in self.baselines:
-            step(self._gaussian_codec(sample, BACKBONE + "→PNG", self.png.setting, gaussians, gen_s,
-                                      self.png.encode, self.png.decode))
+            yield self._gaussian_codec(sample, BACKBONE + "→PNG", self.png.setting, gaussians, gen_s,
+                                       self.png.encode, self.png.decode)
         if "feature" in self.baselines:
-            step(self._feature_codec(sample, out, gen_s, reference))
-        side = {part: coded[0].parts[part] for part in SIDE_PARTS}  # the same at every lambda
+            yield self._feature_codec(sample, out, gen_s, reference)
+        side = {part: coded.parts[part] for part in SIDE_PARTS}  # the same at every lambda
         for codec in self.image_codecs:
-            step(self._image_codec(sample, codec, side, reference))
-        return rows
+            yield self._image_codec(sample, codec, side, reference)
 
     def _autocast(self):
         return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.device.type == "cuda")
@@ -366,6 +396,10 @@ class EvalConfig:
     """RDO step counts (>= 1): each adds CodecSplat rows at every lambda, optimised for that many steps."""
     rdo_seed: int = 0
     """Seed of the RDO rows' quantisation noise."""
+    units: tuple[tuple[str, str], ...] = ()
+    """(scene, row group) pairs (:func:`row_layout`: ``base`` or an RDO setting at a lambda, ``slow λ=64``): only
+    the rows of those groups of each scene's samples, a worker's share of an evaluation dealt over processes
+    (:func:`~codecsplat_warp.eval.shards.evaluate_sharded`); empty: every row."""
 
     @property
     def image_qualities(self) -> dict[str, tuple[int, ...]]:
@@ -397,6 +431,9 @@ def evaluate(model, config: EvalConfig, device: torch.device,
     ``on_sample(done, total)``, when given, is called with the counts of finished and of all samples once the samples
     of an earlier run are known, and after every sample (e.g. to report progress to another process).
 
+    With ``config.units``, each sample gives only the rows of the row groups its scene's units name (a worker's
+    share, :func:`~codecsplat_warp.eval.shards.evaluate_sharded`), in their order of a full run.
+
     Returns:
         {"config", "device", "machine", "model_id", "scenes", "skipped", "lpips", "files", "plan", "rdo" (each RDO
         setting's method, preset, steps and seed), "samples_done", "samples_total", "summary", "rows",
@@ -405,12 +442,12 @@ def evaluate(model, config: EvalConfig, device: torch.device,
     Raises:
         InputError: unknown protocol or baseline, empty lambda list, bad size, a chunk folder without an index
             or with the ``scene`` protocol; an image baseline without qualities, a bad or repeated quality; an
-            unknown, repeated or step-less RDO preset or step count.
+            unknown, repeated or step-less RDO preset or step count; a unit of a row group the evaluation lacks.
         DataError: no usable scene (:class:`~codecsplat_warp.errors.NoSamplesError`); an index naming scenes or
             frames the data does not have; results.json of another evaluation in ``out`` (with ``resume``); a
             ``mvs_depth`` that is not a folder, or a corrupt ``depth.json`` or depth PNG in it.
     """
-    protocol, png, image_codecs, rdo = check_config(config)
+    protocol, png, image_codecs, rdo, layout = check_config(config)
     reference = ReferenceDepth(config.mvs_depth) if config.mvs_depth else None
     metrics = ImageMetrics(config.lpips_weights, device)
     plan = _plan(config, protocol, model)
@@ -433,13 +470,14 @@ def evaluate(model, config: EvalConfig, device: torch.device,
     total = len(plan.keys)
     if on_sample is not None:
         on_sample(start, total)
-    with tqdm(total=(total - start) * evaluator.steps_per_sample, desc="eval", unit="method",
+    methods = sum(len(layout_rows(layout, scene_groups(config, key[0]))) for key in plan.keys[start:])
+    with tqdm(total=methods, desc="eval", unit="method",
               disable=None if config.progress else True) as progress:  # None: only on a terminal
         for done, sample in enumerate(plan.load(start), start + 1):
             if done == start + 1:
                 evaluator.warm_up(sample)
             progress.set_postfix_str(sample.scene)
-            sample_rows = evaluator.run(sample, progress)
+            sample_rows = evaluator.run(sample, progress, scene_groups(config, sample.scene))
             rows += sample_rows
             if config.renders:
                 _write_renders(out / "renders" / f"{sample.scene}-{done}.png", sample, sample_rows, evaluator.renders)
@@ -453,12 +491,14 @@ def evaluate(model, config: EvalConfig, device: torch.device,
 
 class CheckedConfig(NamedTuple):
     """What :func:`check_config` makes of an :class:`EvalConfig`: the ``protocol`` (its target-view count and size
-    applied), the ``png`` baseline, the ``image_codecs`` rows and the ``rdo`` settings."""
+    applied), the ``png`` baseline, the ``image_codecs`` rows, the ``rdo`` settings and the ``layout`` of a
+    sample's rows (:func:`row_layout`)."""
 
     protocol: Protocol
     png: PngCompression
     image_codecs: list[ImageCodec]
     rdo: list[RDOSetting]
+    layout: list[str]
 
 
 def check_config(config: EvalConfig) -> CheckedConfig:
@@ -466,7 +506,8 @@ def check_config(config: EvalConfig) -> CheckedConfig:
 
     Raises:
         InputError: unknown protocol or baseline, empty lambda list, a lambda outside [16, 1024], bad size,
-            target-view or sample count, bad PNG baseline settings, bad image-codec qualities or RDO settings.
+            target-view or sample count, bad PNG baseline settings, bad image-codec qualities or RDO settings, a
+            unit of a row group the evaluation does not have.
     """
     protocol = _protocol(config)
     unknown = sorted(set(config.baselines) - set(BASELINE_NAMES))
@@ -477,7 +518,18 @@ def check_config(config: EvalConfig) -> CheckedConfig:
     for lam in config.lambdas:
         check_lambda(lam)
     png = PngCompression(sh_clusters=config.png_sh_clusters, kmeans_iterations=config.kmeans_iterations)
-    return CheckedConfig(protocol, png, _image_codecs(config), _rdo_settings(config))
+    image_codecs, rdo = _image_codecs(config), _rdo_settings(config)
+    layout = row_layout(config.lambdas, config.baselines, image_codecs, rdo)
+    unknown = sorted({group for _, group in config.units} - set(layout))
+    if unknown:
+        raise InputError(f"units of unknown row groups {', '.join(unknown)}; this evaluation's are "
+                         f"{', '.join(dict.fromkeys(layout))}")
+    return CheckedConfig(protocol, png, image_codecs, rdo, layout)
+
+
+def scene_groups(config: EvalConfig, scene: str) -> set[str] | None:
+    """The row groups that ``config.units`` asks of the samples of ``scene`` (None: every row, without units)."""
+    return {group for name, group in config.units if name == scene} if config.units else None
 
 
 def no_samples_error(config: EvalConfig, protocol: Protocol, skipped: list[dict]) -> NoSamplesError:
