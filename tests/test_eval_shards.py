@@ -1,12 +1,14 @@
 """Work over worker processes (``codecsplat_warp.eval.shards``): the workers' devices, the round-robin split,
 ``run_sharded`` on two CPU processes (results in shard order, equal to running in this process; a worker's error
-named by its shard, typed), and ``codecsplat eval --workers 2 --device cpu`` writing the results.json of a
-one-process run. The tasks are module-level so that the spawned workers can import them."""
+named by its shard, typed), what ``codecsplat eval`` deals (whole scenes, or with RDO rows each scene's base rows
+and RDO row groups), and ``codecsplat eval --workers 2|3 --device cpu`` writing the results.json of a one-process
+run. The tasks are module-level so that the spawned workers can import them."""
 
 from __future__ import annotations
 
 import json
 import os
+from dataclasses import replace
 
 import pytest
 import torch
@@ -14,7 +16,7 @@ import torch
 from codecsplat_warp.cli import main
 from codecsplat_warp.errors import DataError, InputError, ShardError
 from codecsplat_warp.eval import shards
-from codecsplat_warp.eval.evaluate import EvalConfig
+from codecsplat_warp.eval.evaluate import EvalConfig, Evaluator, check_config
 from codecsplat_warp.eval.shards import report_progress, run_sharded, shard_devices, split_round_robin
 from codecsplat_warp.metrics import WEIGHTS_ENV
 from codecsplat_warp.model.pretrained import save_pretrained
@@ -100,6 +102,24 @@ def test_a_run_split_another_way_is_not_resumed(tmp_path):
     with pytest.raises(DataError, match="split over another number of workers"):
         shards._check_split(tmp_path, configs)
     shards._check_split(tmp_path, [EvalConfig(data="x", out=str(shard), scenes=("a", "c"))])
+    with pytest.raises(DataError, match="other scenes or units"):  # the same scenes, dealt as row groups
+        shards._check_split(tmp_path, [EvalConfig(data="x", out=str(shard), scenes=("a", "c"), rdo_steps=(2,),
+                                                  units=(("a", "base"), ("c", "2 steps λ=64")))])
+
+
+def test_with_rdo_rows_the_base_rows_and_each_rdo_group_of_a_scene_are_dealt_apart():
+    config = EvalConfig(data="x", out="o", lambdas=(64.0, 256.0), baselines=(), rdo_steps=(2,))
+    split = shards._split(config, ["a", "c"], 3)
+    assert [shard.units for shard in split] == [(("a", "2 steps λ=64"), ("c", "2 steps λ=256")),
+                                                (("c", "2 steps λ=64"), ("a", "base")),
+                                                (("a", "2 steps λ=256"), ("c", "base"))]
+    assert [shard.scenes for shard in split] == [("a", "c")] * 3 and split[2].out == "o/shards/2"
+    assert len(shards._split(config, ["a", "c"], 8)) == 6  # no more workers than units
+    for whole in (replace(config, rdo_steps=()), replace(config, renders=True)):  # whole scenes, as many as asked
+        assert [(s.scenes, s.units) for s in shards._split(whole, ["a", "b", "c"], 2)] == [(("a", "c"), ()),
+                                                                                        (("b",), ())]
+    with pytest.raises(InputError, match="unknown row groups 2 steps λ=16; this evaluation's are base, 2 steps"):
+        check_config(replace(config, units=(("a", "2 steps λ=16"),)))
 
 
 TIMINGS = ("gen_s", "compress_s", "decompress_s")
@@ -107,6 +127,13 @@ TIMINGS = ("gen_s", "compress_s", "decompress_s")
 
 def _without(entry: dict, keys) -> dict:
     return {k: v for k, v in entry.items() if k not in keys}
+
+
+def _untimed(row: dict) -> dict:
+    """A row without its clock readings: the timings, and the seconds of an RDO row's optimisation and checks."""
+    rdo = row["rdo"] and {**_without(row["rdo"], {"seconds", "checks"}),
+                          "checks": [_without(check, {"seconds"}) for check in row["rdo"]["checks"]]}
+    return {**_without(row, TIMINGS), "rdo": rdo}
 
 
 def _close(a, b) -> bool:
@@ -146,3 +173,34 @@ def test_eval_over_two_cpu_workers_writes_what_one_process_writes(tmp_path, monk
     assert sorted(p.name for p in (tmp_path / "two" / "renders").iterdir()) == ["a-1.png", "c-2.png"]
     assert main([*command, "-o", str(tmp_path / "two"), "--workers", "2"]) == 0  # every shard resumes: nothing to run
     assert json.loads((tmp_path / "two" / "results.json").read_text())["rows"] == two["rows"]  # timings as measured
+
+
+@pytest.mark.slow  # about 40 s on 2 CPU cores: a one-process run, then three worker processes
+def test_eval_with_rdo_rows_over_three_cpu_workers_writes_what_one_process_writes(tmp_path, monkeypatch):
+    monkeypatch.delenv(WEIGHTS_ENV, raising=False)  # no LPIPS: shorter runs
+    save_pretrained(tiny_coding_model(0), tmp_path / "tiny.safetensors")
+    for name, seed in (("a", 1), ("c", 3)):
+        write_scene(tmp_path / "scenes" / name, seed=seed, views=4)
+    command = ["eval", "--data", str(tmp_path / "scenes"), "--protocol", "scene", "--lambdas", "64,256",
+               "--rdo-steps", "2", "--baselines", "ply", "--targets", "1", "--samples-per-scene", "2", "--device",
+               "cpu", "--json", "--checkpoint", str(tmp_path / "tiny.safetensors")]
+    assert main([*command, "-o", str(tmp_path / "one"), "--workers", "1"]) == 0
+    assert main([*command, "-o", str(tmp_path / "three"), "--workers", "3"]) == 0  # 6 units: see the test above
+    one, three = (json.loads((tmp_path / out / "results.json").read_text()) for out in ("one", "three"))
+    assert list(three) == list(one) and three["plan"] == one["plan"] and len(one["plan"]) == 4
+    assert [(r["scene"], r["method"], r["setting"]) for r in three["rows"]] == [
+        (r["scene"], r["method"], r["setting"]) for r in one["rows"]]
+    assert len(one["rows"]) == 4 * 7 and _close([_untimed(r) for r in three["rows"]],
+                                                 [_untimed(r) for r in one["rows"]])
+    assert _close([_without(s, TIMINGS) for s in three["summary"]], [_without(s, TIMINGS) for s in one["summary"]])
+    for key in ("device", "machine", "model_id", "lpips", "skipped", "rdo", "samples_done", "depth_reference"):
+        assert three[key] == one[key], key
+    assert _without(three["config"], {"out"}) == _without(one["config"], {"out"})
+    assert three["tables"]["table1"] == one["tables"]["table1"]
+    worker = [json.loads((tmp_path / "three" / "shards" / str(k) / "results.json").read_text()) for k in range(3)]
+    assert [len(w["rows"]) for w in worker] == [2 + 2, 2 + 2 * 5, 2 + 2 * 5]  # RDO rows, base rows
+    # the same command again: every shard resumes, nothing is run (the workers in this process: no start-up)
+    monkeypatch.setattr(shards, "run_sharded", lambda task, parts, devices, **_: [task(p, CPU) for p in parts])
+    monkeypatch.setattr(Evaluator, "run", None)
+    assert main([*command, "-o", str(tmp_path / "three"), "--workers", "3"]) == 0
+    assert json.loads((tmp_path / "three" / "results.json").read_text())["rows"] == three["rows"]

@@ -2,14 +2,15 @@
 split that way.
 
 Scene samples are independent, so an evaluation, or a benchmark over scenes, can give each worker process a part of
-the scenes:
+the work:
 
 * :func:`shard_devices`: the workers' devices for a ``--device`` and a worker count;
 * :func:`split_round_robin`: items dealt over the workers;
 * :func:`run_sharded`: ``task(shard, device)`` for every shard in its own spawned process, the results in shard
   order; tasks report their progress with :func:`report_progress`, which the parent shows as one bar;
-* :func:`evaluate_sharded`: :func:`~codecsplat_warp.eval.evaluate.evaluate` with the scenes dealt over workers, each
-  evaluating its scenes into ``OUT/shards/<k>/``, merged into the files a one-process run writes.
+* :func:`evaluate_sharded`: :func:`~codecsplat_warp.eval.evaluate.evaluate` with the scenes (with RDO rows, each
+  scene's base rows and RDO row groups) dealt over workers, each evaluating its share into ``OUT/shards/<k>/``,
+  merged into the files a one-process run writes.
 
 Workers are started with the ``spawn`` method: the task must be a module-level function, its shards and results
 picklable, and a script that calls :func:`run_sharded` must do so under ``if __name__ == "__main__":``.
@@ -26,6 +27,7 @@ import shutil
 import signal
 import sys
 import traceback
+from collections import Counter
 from dataclasses import replace
 from multiprocessing.connection import wait
 from typing import Callable, Sequence
@@ -36,8 +38,8 @@ from tqdm.auto import tqdm
 from ..device import available_cores, resolve_device, set_cpu_threads
 from ..errors import CodecSplatError, DataError, InputError, NoSamplesError, ShardError
 from ..model.pretrained import load_pretrained
-from .evaluate import (EvalConfig, check_config, evaluate, no_samples_error, plan_scenes, results_header,
-                       write_results)
+from .evaluate import (EvalConfig, check_config, evaluate, layout_rows, no_samples_error, plan_scenes, results_header,
+                       scene_groups, write_results)
 from .report import Row
 
 STOP_S = 10.0
@@ -308,49 +310,88 @@ def _stop(workers: list, grace: float) -> None:
 # codecsplat eval over workers
 def evaluate_sharded(config: EvalConfig, checkpoint: str | None, device: torch.device, workers: list[torch.device],
                      threads: int | None = None) -> dict:
-    """:func:`~codecsplat_warp.eval.evaluate.evaluate` of a pretrained model with the scenes dealt over worker
-    processes (:func:`split_round_robin`, :func:`run_sharded`), merged into what one process writes.
+    """:func:`~codecsplat_warp.eval.evaluate.evaluate` of a pretrained model dealt over worker processes
+    (:func:`run_sharded`), merged into what one process writes.
 
-    Worker k loads the model on its device and evaluates its scenes into ``config.out/shards/<k>/`` (its own
+    What is dealt (:func:`split_round_robin`, like cards): without RDO rows, whole scenes in the plan's order. With
+    RDO rows nearly all the time is their encodes, one per (sample, RDO setting, lambda), and whole scenes would bound
+    the speed-up by the scene count (ten scenes on four GPUs leave one worker three: at most 3.3x). So the units are
+    finer: a scene's *base* rows (copy-nearest, CodecSplat at every lambda, the codec-free reference and the
+    baselines: :data:`~codecsplat_warp.eval.evaluate.BASE_GROUP`) and each of its RDO row groups (a setting at a
+    lambda), dealt group by group (every scene's first RDO group, then the next, ..., the base units, as a rule the
+    cheaper, last), the deal going on from group to group, so that each worker gets nearly the same count of every
+    group and the RDO units of a scene spread over the workers. A worker evaluates only its units' rows
+    (:attr:`EvalConfig.units`): one that has only RDO units of a scene loads its samples but runs no base row. A
+    sample's ``renders`` picture shows every row, which would take the renders of several workers: with ``renders``
+    whole scenes are dealt.
+
+    Worker k loads the model on its device and evaluates its share into ``config.out/shards/<k>/`` (its own
     results.json, resumed like any evaluation when the same command runs again with the same workers). Then this
-    process writes results.json, tables.md and the plots to ``config.out`` as a one-process run does: the rows in
-    the plan's order, the same summary and tables, ``device`` and the machine of the first worker; with ``renders``
-    it copies each sample's picture to its one-process name, ``renders/<scene>-<sample>.png``. The timings are
-    each worker's own wall-clock seconds (workers sharing a GPU lengthen each other's). With one worker, or a single
-    scene, the evaluation runs in this process on ``device``, straight into ``config.out``.
+    process writes results.json, tables.md and the plots to ``config.out`` as a one-process run does: each sample's
+    rows in a one-process run's order, the samples in the plan's order, the same summary and tables, ``device`` and
+    the machine of the first worker; with ``renders`` it copies each sample's picture to its one-process name,
+    ``renders/<scene>-<sample>.png``. The timings are each worker's own wall-clock seconds (workers sharing a GPU
+    lengthen each other's). With one worker, or a single unit (one scene without RDO rows), the evaluation runs in
+    this process on ``device``, straight into ``config.out``.
 
     Args:
-        config: the evaluation; ``progress`` shows one bar of finished samples over all workers.
+        config: the evaluation (without ``units``); ``progress`` shows one bar of the samples the workers finish (a
+            sample whose rows several workers share counts once in each).
         checkpoint: the pretrained model file (:func:`~codecsplat_warp.model.pretrained.load_pretrained`; None: the
             shipped model).
         device: the evaluation's device as given (``--device`` resolved, e.g. ``cuda``): the one-process run's, and
             what results.json records.
-        workers: the workers' devices (:func:`shard_devices`); more workers than scenes are not started.
+        workers: the workers' devices (:func:`shard_devices`); more workers than units are not started.
         threads: CPU threads per worker process (None: the available cores shared out).
     Returns:
         the result dict of :func:`~codecsplat_warp.eval.evaluate.evaluate`.
     Raises:
         InputError, DataError: as :func:`~codecsplat_warp.eval.evaluate.evaluate` (raised in a worker: prefixed with
             its shard; a worker whose scenes are all unusable only adds them to ``skipped``); DataError also when
-            ``config.out/shards`` holds this evaluation split over another number of workers (with ``resume``).
+            ``config.out/shards`` holds this evaluation split another way, over another number of workers (with
+            ``resume``).
         ShardError: a worker failed otherwise.
     """
     scenes = plan_scenes(config) if len(workers) > 1 else []
-    parts = min(len(workers), len(scenes))
-    if parts <= 1:
+    shards = _split(config, scenes, len(workers))
+    if len(shards) <= 1:
         return evaluate(load_pretrained(checkpoint, device), config, device)
-    out = pathlib.Path(config.out)
-    shards = [replace(config, scenes=tuple(names), out=str(out / "shards" / str(k)), progress=False)
-              for k, names in enumerate(split_round_robin(scenes, parts))]
     if config.resume:
-        _check_split(out, shards)
-    results = run_sharded(_evaluate_shard, [(shard, checkpoint) for shard in shards], workers[:parts],
+        _check_split(pathlib.Path(config.out), shards)
+    results = run_sharded(_evaluate_shard, [(shard, checkpoint) for shard in shards], workers[:len(shards)],
                           threads=threads, progress=config.progress, desc="eval", unit="sample")
     return _merge(config, device, scenes, shards, results)
 
 
+def _units(config: EvalConfig, scenes: list[str]) -> list[tuple[str, str | None]]:
+    """The units :func:`evaluate_sharded` deals, in dealing order, of ``scenes`` (the plan's order): (scene, None),
+    a whole scene, for each scene when ``config`` has no RDO rows or writes renders; else (scene, row group): each
+    RDO row group's (in a full run's order) for each scene, then each scene's base rows."""
+    groups = list(dict.fromkeys(check_config(config).layout))  # the base group first, then the RDO groups
+    if len(groups) == 1 or config.renders:
+        return [(scene, None) for scene in scenes]
+    return [(scene, group) for group in groups[1:] + groups[:1] for scene in scenes]
+
+
+def _split(config: EvalConfig, scenes: list[str], workers: int) -> list[EvalConfig]:
+    """The evaluation of each worker, at most ``workers`` and no more than the units (:func:`_units`): worker k's
+    dealt units' scenes (in the plan's order ``scenes``) into ``config.out/shards/<k>/``, restricted to its units
+    when they are not whole scenes."""
+    units = _units(config, scenes)
+    parts = split_round_robin(units, min(workers, len(units))) if units else []
+    return [_shard(config, scenes, k, part) for k, part in enumerate(parts)]
+
+
+def _shard(config: EvalConfig, scenes: list[str], k: int, units: list[tuple[str, str | None]]) -> EvalConfig:
+    """Worker ``k``'s evaluation of its ``units`` (see :func:`_split`)."""
+    names = {scene for scene, _ in units}
+    return replace(config, scenes=tuple(scene for scene in scenes if scene in names),
+                   units=tuple((scene, group) for scene, group in units if group is not None),
+                   out=str(pathlib.Path(config.out) / "shards" / str(k)), progress=False)
+
+
 def _evaluate_shard(shard: tuple[EvalConfig, str | None], device: torch.device) -> dict:
-    """A worker of :func:`evaluate_sharded`: the evaluation of its scenes (config, checkpoint) on ``device``,
+    """A worker of :func:`evaluate_sharded`: the evaluation of its share (config, checkpoint) on ``device``,
     reporting its finished samples; only the skipped scenes (and an empty plan and rows) when none is usable."""
     config, checkpoint = shard
     try:
@@ -360,17 +401,19 @@ def _evaluate_shard(shard: tuple[EvalConfig, str | None], device: torch.device) 
 
 
 def _check_split(out: pathlib.Path, shards: list[EvalConfig]) -> None:
-    """DataError when a shard's results.json under ``out/shards`` holds other scenes than this split gives it: the
-    evaluation was split over another number of workers, and only that number resumes it."""
+    """DataError when a shard's results.json under ``out/shards`` holds other scenes or units than this split gives
+    it: the evaluation was split over another number of workers (or by a version that dealt otherwise), and only
+    that split resumes it."""
     for shard in shards:
         file = pathlib.Path(shard.out) / "results.json"
         try:
-            scenes = json.loads(file.read_text())["config"]["scenes"]
-        except (OSError, ValueError, KeyError, TypeError):
+            saved = json.loads(file.read_text())["config"]
+            split = [saved["scenes"], saved.get("units", [])]
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
             continue  # nothing finished yet, or not an evaluation's file: evaluate says which
-        if scenes != list(shard.scenes):
+        if split != json.loads(json.dumps([shard.scenes, shard.units])):
             raise DataError(f"{out / 'shards'} holds an evaluation split over another number of workers ({file} has "
-                            "other scenes): run it with the worker count it had to resume it, or --restart")
+                            "other scenes or units): run it with the worker count it had to resume it, or --restart")
 
 
 def _merge(config: EvalConfig, device: torch.device, scenes: list[str], shards: list[EvalConfig],
@@ -382,22 +425,53 @@ def _merge(config: EvalConfig, device: torch.device, scenes: list[str], shards: 
         NoSamplesError: no worker had a usable scene.
     """
     position = {scene: i for i, scene in enumerate(scenes)}
-    samples = sorted(((position[key[0]], number, k, key) for k, result in enumerate(results)
-                      for number, key in enumerate(result["plan"], 1)), key=lambda s: s[:2])
-    skipped = sorted((s for result in results for s in result["skipped"]), key=lambda s: position[s["scene"]])
-    protocol = check_config(config).protocol
-    if not samples:
-        raise no_samples_error(config, protocol, skipped)
+    checked = check_config(config)
+    samples, placed = _gather(shards, results, checked.layout, position)
+    order = sorted(samples)
+    skipped = sorted({s["scene"]: s for result in results for s in result["skipped"]}.values(),
+                     key=lambda s: position[s["scene"]])
+    if not order:
+        raise no_samples_error(config, checked.protocol, skipped)
     out = pathlib.Path(config.out)
     if config.renders:
         (out / "renders").mkdir(parents=True, exist_ok=True)
-        for number, (_, local, k, key) in enumerate(samples, 1):
+        for number, sample in enumerate(order, 1):
+            key, k, local = samples[sample]
             source = pathlib.Path(shards[k].out) / "renders" / f"{key[0]}-{local}.png"
             if source.is_file():  # a sample an earlier run without renders finished has none
                 shutil.copyfile(source, out / "renders" / f"{key[0]}-{number}.png")
-    rows = sorted((Row(**row) for result in results for row in result["rows"]), key=lambda row: position[row.scene])
+    rows = [row for *_, row in sorted(placed, key=lambda entry: entry[:2])]
     first = next(result for result in results if result["plan"])  # the first worker that had samples
-    header = results_header(config, protocol, device, machine=first["machine"], model=first["model_id"],
-                            scenes=[key[0] for *_, key in samples], skipped=skipped, lpips=first["lpips"],
-                            plan=[key for *_, key in samples], rdo=first["rdo"])
+    keys = [samples[sample][0] for sample in order]
+    header = results_header(config, checked.protocol, device, machine=first["machine"], model=first["model_id"],
+                            scenes=[key[0] for key in keys], skipped=skipped, lpips=first["lpips"], plan=keys,
+                            rdo=first["rdo"])
     return write_results(header, rows, config.mvs_depth, [note for result in results for note in result["notes"]])
+
+
+def _gather(shards: list[EvalConfig], results: list[dict], layout: list[str],
+            position: dict[str, int]) -> tuple[dict[tuple[int, int], tuple], list[tuple]]:
+    """The workers' samples and rows, each sample known by (position of its scene in ``position``, its number among
+    the scene's samples), the same in every worker that has units of the scene: the samples as {sample: (key, the
+    first worker that has it, its number in that worker's plan)}, the rows as (sample, position among a full run's
+    rows of the sample, row). A worker's rows of a sample are those of its groups of the sample's ``layout`` in its
+    order (:func:`~codecsplat_warp.eval.evaluate.layout_rows`), which places them among the other workers' rows."""
+    samples: dict[tuple[int, int], tuple] = {}
+    placed: list[tuple] = []
+    for k, (shard, result) in enumerate(zip(shards, results)):
+        slots = []
+        for local, (key, sample) in enumerate(zip(result["plan"], _sample_ids(result["plan"], position)), 1):
+            samples.setdefault(sample, (key, k, local))
+            slots += [(sample, slot) for slot in layout_rows(layout, scene_groups(shard, key[0]))]
+        placed += [(*where, Row(**row)) for where, row in zip(slots, result["rows"], strict=True)]
+    return samples, placed
+
+
+def _sample_ids(plan: list, position: dict[str, int]) -> list[tuple[int, int]]:
+    """(position of its scene, its number among the scene's samples) of each sample of a worker's ``plan``."""
+    numbers: Counter = Counter()
+    ids = []
+    for scene, *_ in plan:
+        numbers[scene] += 1
+        ids.append((position[scene], numbers[scene]))
+    return ids
