@@ -182,7 +182,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--mvs-depth", help="folder of reference depth, DIR/<scene>/depth.json (codecsplat depth): "
                           "scores the encoder and decoder depth of the context views")
     evaluate.add_argument("--workers", type=int, metavar="N",
-                          help="worker processes to deal the scenes over, on the GPUs in turn (--device cuda or "
+                          help="worker processes to deal the scenes over (with RDO rows, each scene's base rows and "
+                          "RDO rows apart, by their cost), on the GPUs in turn (--device cuda or "
                           "auto; several per GPU are allowed) or on the CPU (--device cpu); each writes OUT/shards/K/, "
                           "merged into OUT (default: one per visible GPU with --device cuda or auto, else 1: this "
                           "process alone)")

@@ -107,19 +107,36 @@ def test_a_run_split_another_way_is_not_resumed(tmp_path):
                                                   units=(("a", "base"), ("c", "2 steps λ=64")))])
 
 
-def test_with_rdo_rows_the_base_rows_and_each_rdo_group_of_a_scene_are_dealt_apart():
+def test_with_rdo_rows_the_base_rows_and_each_rdo_group_of_a_scene_are_dealt_apart_by_cost():
     config = EvalConfig(data="x", out="o", lambdas=(64.0, 256.0), baselines=(), rdo_steps=(2,))
+    assert shards._group_costs(config) == {"base": 4.0, "2 steps λ=64": 6.0, "2 steps λ=256": 6.0}
     split = shards._split(config, ["a", "c"], 3)
     assert [shard.units for shard in split] == [(("a", "2 steps λ=64"), ("c", "2 steps λ=256")),
-                                                (("c", "2 steps λ=64"), ("a", "base")),
-                                                (("a", "2 steps λ=256"), ("c", "base"))]
-    assert [shard.scenes for shard in split] == [("a", "c")] * 3 and split[2].out == "o/shards/2"
+                                                (("a", "base"), ("a", "2 steps λ=256")),
+                                                (("c", "base"), ("c", "2 steps λ=64"))]
+    assert [shard.scenes for shard in split] == [("a", "c"), ("a",), ("c",)] and split[2].out == "o/shards/2"
     assert len(shards._split(config, ["a", "c"], 8)) == 6  # no more workers than units
     for whole in (replace(config, rdo_steps=()), replace(config, renders=True)):  # whole scenes, as many as asked
         assert [(s.scenes, s.units) for s in shards._split(whole, ["a", "b", "c"], 2)] == [(("a", "c"), ()),
                                                                                         (("b",), ())]
     with pytest.raises(InputError, match="unknown row groups 2 steps λ=16; this evaluation's are base, 2 steps"):
         check_config(replace(config, units=(("a", "2 steps λ=16"),)))
+
+
+def test_dealing_by_cost_balances_the_workers():
+    # ten held-out scenes at one lambda: slow (21 s), medium (5.5 s) and base (3 s) units over four workers
+    units = [(scene, group) for scene in range(10) for group in ("slow", "medium", "base")]
+    cost = {"slow": 21.0, "medium": 5.5, "base": 3.0}
+    hands = shards.deal_by_cost(units, [cost[g] for _, g in units], 4)
+    assert sorted(u for hand in hands for u in hand) == sorted(units)
+    assert all([units.index(u) for u in hand] == sorted(units.index(u) for u in hand) for hand in hands)
+    loads = [sum(cost[g] for _, g in hand) for hand in hands]
+    assert max(loads) - min(loads) <= cost["slow"] and max(loads) < 80.0  # like cards, the busiest would hold 80
+    assert shards.deal_by_cost(["x", "y"], [1.0, 2.0], 3) == [["y"], ["x"], []]
+    with pytest.raises(InputError, match="one cost >= 0 per item"):
+        shards.deal_by_cost(["x", "y"], [1.0], 2)
+    with pytest.raises(InputError, match="part count"):
+        shards.deal_by_cost(["x"], [1.0], 0)
 
 
 TIMINGS = ("gen_s", "compress_s", "decompress_s")

@@ -72,7 +72,7 @@ from ..gaussians import Gaussians
 from ..measure import machine_name, synchronize, timed
 from ..metrics.image import ImageMetrics
 from ..model.codecsplat import model_id
-from ..model.rdo import rdo_config
+from ..model.rdo import preset_steps, rdo_config
 from .geometry import ReferenceDepth, depth_errors
 from .protocols import (PROTOCOLS, Protocol, Sample, SamplePlan, chunk_plan, eager_plan, find_scenes, folder_index_plan,
                         is_chunk_folder, nearest_context_images, scene_samples, select_scenes)
@@ -125,6 +125,10 @@ class RDOSetting:
         if self.steps is not None:
             return self.steps
         return f"{RDO_PRESETS[self.preset]:g} x views^2, at least {RDO_MIN_PRESET_STEPS}"
+
+    def step_count(self, views: int) -> int:
+        """The optimisation steps it takes with ``views`` context views."""
+        return self.steps if self.steps is not None else preset_steps(self.preset, views)
 
     @property
     def encode_options(self) -> dict:

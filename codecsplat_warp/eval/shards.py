@@ -38,8 +38,8 @@ from tqdm.auto import tqdm
 from ..device import available_cores, resolve_device, set_cpu_threads
 from ..errors import CodecSplatError, DataError, InputError, NoSamplesError, ShardError
 from ..model.pretrained import load_pretrained
-from .evaluate import (EvalConfig, check_config, evaluate, layout_rows, no_samples_error, plan_scenes, results_header,
-                       scene_groups, write_results)
+from .evaluate import (BASE_GROUP, EvalConfig, check_config, evaluate, layout_rows, no_samples_error, plan_scenes,
+                       results_header, scene_groups, write_results)
 from .report import Row
 
 STOP_S = 10.0
@@ -88,6 +88,26 @@ def split_round_robin(items: Sequence, parts: int) -> list[list]:
         raise InputError(f"the part count must be a positive integer, got {parts!r}")
     items = list(items)
     return [items[k::parts] for k in range(parts)]
+
+
+def deal_by_cost(items: Sequence, costs: Sequence[float], parts: int) -> list[list]:
+    """``items`` dealt over ``parts`` lists by their ``costs``: the costliest first (ties in their order), each to
+    the part with the least cost so far (ties to the first), the longest-processing-time rule, so the parts' totals
+    differ by at most about the dearest item's cost; each part holds its items in their given order.
+
+    Raises:
+        InputError: ``parts`` is not a positive integer, or ``costs`` is not one number >= 0 per item.
+    """
+    split_round_robin((), parts)  # the part count's check
+    items, costs = list(items), [float(c) for c in costs]
+    if len(costs) != len(items) or any(not c >= 0 for c in costs):
+        raise InputError(f"deal_by_cost needs one cost >= 0 per item, got {len(costs)} for {len(items)} items")
+    loads, hands = [0.0] * parts, [[] for _ in range(parts)]
+    for i in sorted(range(len(items)), key=lambda i: -costs[i]):
+        k = loads.index(min(loads))
+        hands[k].append(i)
+        loads[k] += costs[i]
+    return [[items[i] for i in sorted(hand)] for hand in hands]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -313,17 +333,16 @@ def evaluate_sharded(config: EvalConfig, checkpoint: str | None, device: torch.d
     """:func:`~codecsplat_warp.eval.evaluate.evaluate` of a pretrained model dealt over worker processes
     (:func:`run_sharded`), merged into what one process writes.
 
-    What is dealt (:func:`split_round_robin`, like cards): without RDO rows, whole scenes in the plan's order. With
+    What is dealt: without RDO rows, whole scenes in the plan's order, like cards (:func:`split_round_robin`). With
     RDO rows nearly all the time is their encodes, one per (sample, RDO setting, lambda), and whole scenes would bound
     the speed-up by the scene count (ten scenes on four GPUs leave one worker three: at most 3.3x). So the units are
     finer: a scene's *base* rows (copy-nearest, CodecSplat at every lambda, the codec-free reference and the
     baselines: :data:`~codecsplat_warp.eval.evaluate.BASE_GROUP`) and each of its RDO row groups (a setting at a
-    lambda), dealt group by group (every scene's first RDO group, then the next, ..., the base units, as a rule the
-    cheaper, last), the deal going on from group to group, so that each worker gets nearly the same count of every
-    group and the RDO units of a scene spread over the workers. A worker evaluates only its units' rows
-    (:attr:`EvalConfig.units`): one that has only RDO units of a scene loads its samples but runs no base row. A
-    sample's ``renders`` picture shows every row, which would take the renders of several workers: with ``renders``
-    whole scenes are dealt.
+    lambda), dealt by their estimated cost (:func:`deal_by_cost`: the dearest first, each to the least loaded
+    worker; :func:`_group_costs`: an RDO group costs in proportion to its steps), so that the workers finish
+    together. A worker evaluates only its units' rows (:attr:`EvalConfig.units`): one that has only RDO units of a
+    scene loads its samples but runs no base row. A sample's ``renders`` picture shows every row, which would take
+    the renders of several workers: with ``renders`` whole scenes are dealt.
 
     Worker k loads the model on its device and evaluates its share into ``config.out/shards/<k>/`` (its own
     results.json, resumed like any evaluation when the same command runs again with the same workers). Then this
@@ -364,22 +383,46 @@ def evaluate_sharded(config: EvalConfig, checkpoint: str | None, device: torch.d
 
 
 def _units(config: EvalConfig, scenes: list[str]) -> list[tuple[str, str | None]]:
-    """The units :func:`evaluate_sharded` deals, in dealing order, of ``scenes`` (the plan's order): (scene, None),
-    a whole scene, for each scene when ``config`` has no RDO rows or writes renders; else (scene, row group): each
-    RDO row group's (in a full run's order) for each scene, then each scene's base rows."""
+    """The units :func:`evaluate_sharded` deals, of ``scenes`` (the plan's order): (scene, None), a whole scene, for
+    each scene when ``config`` has no RDO rows or writes renders; else (scene, row group): each scene's base rows
+    and each of its RDO row groups."""
     groups = list(dict.fromkeys(check_config(config).layout))  # the base group first, then the RDO groups
     if len(groups) == 1 or config.renders:
         return [(scene, None) for scene in scenes]
-    return [(scene, group) for group in groups[1:] + groups[:1] for scene in scenes]
+    return [(scene, group) for scene in scenes for group in groups]
+
+
+RDO_STEP_COST = 3.0
+"""The cost of an RDO step in :func:`_group_costs`' unit, a base row's: a step runs the decoder forward and backward,
+a base row about one forward pass and its scoring."""
+
+
+def _group_costs(config: EvalConfig) -> dict[str, float]:
+    """The estimated cost of each row group of a sample, to deal the units of :func:`_units` by cost: one for each
+    base row, :data:`RDO_STEP_COST` for each step of an RDO group (its steps are most of an evaluation's time)."""
+    checked = check_config(config)
+    views = checked.protocol.context_views or 2  # the shipped models' count when the protocol leaves it open
+    costs = {BASE_GROUP: float(checked.layout.count(BASE_GROUP))}
+    costs.update({setting.group(lam): RDO_STEP_COST * setting.step_count(views)
+                  for setting in checked.rdo for lam in config.lambdas})
+    return costs
 
 
 def _split(config: EvalConfig, scenes: list[str], workers: int) -> list[EvalConfig]:
-    """The evaluation of each worker, at most ``workers`` and no more than the units (:func:`_units`): worker k's
-    dealt units' scenes (in the plan's order ``scenes``) into ``config.out/shards/<k>/``, restricted to its units
-    when they are not whole scenes."""
+    """The evaluation of each worker, at most ``workers`` and no more than the units (:func:`_units`): whole scenes
+    dealt like cards, or a scene's base rows and RDO groups dealt by their estimated cost (:func:`deal_by_cost`,
+    :func:`_group_costs`); worker k's units' scenes (in the plan's order ``scenes``) into
+    ``config.out/shards/<k>/``, restricted to its units when they are not whole scenes."""
     units = _units(config, scenes)
-    parts = split_round_robin(units, min(workers, len(units))) if units else []
-    return [_shard(config, scenes, k, part) for k, part in enumerate(parts)]
+    parts = min(workers, len(units))
+    if not units:
+        hands = []
+    elif units[0][1] is None:
+        hands = split_round_robin(units, parts)
+    else:
+        costs = _group_costs(config)
+        hands = deal_by_cost(units, [costs[group] for _, group in units], parts)
+    return [_shard(config, scenes, k, hand) for k, hand in enumerate(hands)]
 
 
 def _shard(config: EvalConfig, scenes: list[str], k: int, units: list[tuple[str, str | None]]) -> EvalConfig:
