@@ -175,47 +175,6 @@ def test_the_optional_terms_enter_the_loss_only_when_weighted():
     assert float(more) == pytest.approx(float(expected), rel=1e-5)
 
 
-def test_the_view_schedule_deals_every_view_once_a_pass():
-    schedule = rdo.ViewSchedule(3, 8, seed=2)
-    passes = [[schedule() for _ in range(3)] for _ in range(2)]
-    for groups in passes:
-        assert [len(g) for g in groups] == [3, 3, 2] and all(g == sorted(g) for g in groups)
-        assert sorted(v for g in groups for v in g) == list(range(8)), "each view once a pass"
-    assert passes[0] != passes[1], "a fresh order every pass"
-    again = rdo.ViewSchedule(3, 8, seed=2)
-    assert [again() for _ in range(3)] == passes[0], "the seed repeats the order"
-    assert rdo.ViewSchedule(0, 8, 0)() is None and rdo.ViewSchedule(8, 8, 0)() is None, "every view: no subset"
-    with pytest.raises(InputError, match="views_per_step"):
-        rdo.RDOConfig(steps=1, views_per_step=-1)
-
-
-def test_a_step_on_some_views_compares_only_their_renders():
-    model = tiny_coding_model(5)
-    images, cameras = _scene(13)
-    start = _start(model, images, cameras)
-    config = rdo.RDOConfig(steps=1)
-    target = rdo.rdo_target(model, images, cameras, LAM, start, config)
-    losses = {}
-    with torch.no_grad():
-        for views in (None, [0], [1]):
-            losses[str(views)] = rdo.rdo_loss(model, start.latents, target, config, torch.Generator().manual_seed(0),
-                                              views=views)[1]
-    both, first, second = losses["None"], losses["[0]"], losses["[1]"]
-    assert float(first["mse"]) != pytest.approx(float(second["mse"]))
-    assert float(both["mse"]) == pytest.approx((float(first["mse"]) + float(second["mse"])) / 2, rel=1e-5)
-    assert float(first["bpp"]) == float(both["bpp"]), "the rate is every view's"
-
-
-def test_an_optimisation_on_one_view_a_step_fits_both_views_better():
-    model = tiny_coding_model(0)
-    images, cameras = _scene()
-    amortised = model.encode_scene(images, cameras, LAM)
-    encoded = model.encode_scene(images, cameras, LAM, steps=12, seed=1, rdo_settings={"views_per_step": 1})
-    checks = {c.step: c for c in encoded.rdo.checks}
-    assert encoded.rdo.best_step > 0 and checks[encoded.rdo.best_step].loss < checks[0].loss
-    assert _context_mse(model, encoded.data, images, cameras) < _context_mse(model, amortised.data, images, cameras)
-
-
 def _start(model, images, cameras):
     with torch.no_grad():
         return model.codec.compress(model(images, cameras)["F_c"], LAM, reconstruct=True)

@@ -43,8 +43,8 @@ from ..measure import format_table, machine_name, synchronize
 from ..metrics import LPIPS
 from ..metrics.image import ImageMetrics
 from ..model import pretrained
-from ..model.rdo import (RDOConfig, ViewSchedule, latent_optimiser, other_views_gaussians, psnr_of_mse, rdo_config,
-                         rdo_step, rdo_target, start_variables, step_decoder)
+from ..model.rdo import (RDOConfig, latent_optimiser, other_views_gaussians, psnr_of_mse, rdo_config, rdo_step,
+                         rdo_target, start_variables, step_decoder)
 from .options import RDO_PROFILE_PARTS
 
 METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
@@ -357,10 +357,8 @@ def profile_step(model, sample: Sample, lam: float, settings: dict, steps: int, 
         model.train()
         decoder = step_decoder(model, target, latents, config)
 
-        schedule = ViewSchedule(config.views_per_step, sample.context_cameras.num_views, config.seed)
-
         def step() -> None:
-            rdo_step(model, latents, optimiser, target, config, None, decoder, views=schedule())
+            rdo_step(model, latents, optimiser, target, config, None, decoder)
 
         for _ in range(3):
             step()

@@ -25,8 +25,6 @@ for LPIPS and needs the LPIPS weights (docs/benchmarks.md, "Encoder RDO"). They 
 (``codecsplat bench rdo --set``). With two views the targets' gain peaks after some 20 steps while the context views
 keep improving (the photographs get fitted with geometry that no other view confirms); with eight it still grows
 after 300: the presets' step counts grow with the square of the view count (:func:`preset_steps`).
-A step may also compare only some of the context views (``RDOConfig.views_per_step``, dealt by
-:class:`ViewSchedule`): the rasterizer, which an 8-view step mostly waits on, then renders fewer cameras.
 
 Every ``check_every`` steps and at the end, the current latents are coded for real (the coder's rounding, the
 float64 prior path; :meth:`LatentCodec.compress_latents`) and scored by the same loss, with the discrete model's
@@ -116,10 +114,6 @@ class RDOConfig:
             geometrically from ``anneal_start`` to ``anneal_end`` over the run; :class:`~codecsplat_warp.codec.
             latent.NoisyQuantizer`).
         anneal_start, anneal_end: see ``rounding``.
-        views_per_step: context views whose renders a step's loss compares with their photographs (0: all of
-            them). Fewer views cost fewer rasterizer launches a step; the views are dealt in a fresh random order
-            every pass over them (:class:`ViewSchedule`), so each is fitted as often as the others. The checks
-            always measure every view.
     """
 
     steps: int | None = 0
@@ -140,7 +134,6 @@ class RDOConfig:
     rounding: str = "noise"
     anneal_start: float = 0.5
     anneal_end: float = 0.05
-    views_per_step: int = 0
 
     def __post_init__(self) -> None:
         if self.steps is None and self.time_budget is None:
@@ -162,10 +155,6 @@ class RDOConfig:
         for name, value in weights.items():
             if not (math.isfinite(value) and value >= 0):
                 raise InputError(f"RDOConfig.{name} must be >= 0, got {value!r}")
-        if (isinstance(self.views_per_step, bool) or not isinstance(self.views_per_step, int)
-                or self.views_per_step < 0):
-            raise InputError(f"RDOConfig.views_per_step must be an integer >= 0 (0: every view), got "
-                             f"{self.views_per_step!r}")
         if self.check_every < 0:
             raise InputError(f"RDOConfig.check_every must be >= 0, got {self.check_every}")
         if self.rounding not in ("noise", "annealed"):
@@ -426,16 +415,13 @@ def step_decoder(model, target: RDOTarget, variables: list[torch.Tensor], config
 
 def rdo_loss(model, variables: list[torch.Tensor], target: RDOTarget, config: RDOConfig,
              generator: torch.Generator | None = None, compressed: CompressedLatents | None = None,
-             decoder: GraphedDecoder | None = None, temperature: float | None = None,
-             views: list[int] | None = None) -> tuple[torch.Tensor, dict]:
+             decoder: GraphedDecoder | None = None, temperature: float | None = None) -> tuple[torch.Tensor, dict]:
     """The loss of the module docstring and its parts (``mse``, ``cross``, ``depth``, ``bpp`` as 0-dim tensors).
 
     ``variables``: the optimised tensors (:attr:`RDOConfig.variable`). With ``compressed`` (a real coding of
     them), its decoder feature and discrete-model bits replace the
     training quantiser's: the loss the encoder measures at a check. ``decoder`` replaces :func:`decode_variables`
     (:func:`step_decoder`). ``temperature``: of annealed rounding (:attr:`RDOConfig.rounding`; None: noisy).
-    ``views``: the context views whose renders the MSE and perceptual terms compare (None: all; see
-    :attr:`RDOConfig.views_per_step`); the rate, the cross-view and the depth terms stay those of every view.
     """
     cameras, images = target.cameras, target.images
     autocast = torch.autocast(images.device.type, dtype=torch.bfloat16,
@@ -450,20 +436,14 @@ def rdo_loss(model, variables: list[torch.Tensor], target: RDOTarget, config: RD
             annealing = None if temperature is None else torch.full((), temperature, device=images.device)
             bits, s, gaussians = decode_variables(model, variables, target, config.variable, generator,
                                                   temperature=annealing)
-    bpp = bits.float() / images[:, 0].numel()
-    shown, photos, perceptual_target = cameras, images, target.perceptual_target
-    if views is not None:
-        shown, photos = cameras.select(views), images[views]
-        if perceptual_target is not None:
-            perceptual_target = [units[views] for units in perceptual_target]
-    rgb = model.render(gaussians, shown, depth_range=target.depth_range)["rgb"]
+    rgb = model.render(gaussians, cameras, depth_range=target.depth_range)["rgb"]
     with record_function("loss"):
-        parts = {"mse": F.mse_loss(rgb, photos), "bpp": bpp}
+        parts = {"mse": F.mse_loss(rgb, images), "bpp": bits.float() / images[:, 0].numel()}
     distortion = parts["mse"]
     if config.perceptual_weight > 0:
         with record_function("perceptual"):
             units = target.perceptual.unit_features(rgb.clamp(0.0, 1.0))
-            parts["perceptual"] = target.perceptual.distance(units, perceptual_target).mean()
+            parts["perceptual"] = target.perceptual.distance(units, target.perceptual_target).mean()
         distortion = distortion + config.perceptual_weight * parts["perceptual"]
     if config.cross_view_weight > 0:
         parts["cross"] = cross_view_error(model, gaussians, cameras, images, target.depth_range)
@@ -499,26 +479,6 @@ def other_views_gaussians(gaussians: Gaussians, views: int) -> list[Gaussians]:
     names = [f.name for f in fields(Gaussians)]
     return [Gaussians(**{name: torch.cat([getattr(p, name) for u, p in enumerate(pieces) if u != v])
                          for name in names}) for v in range(views)]
-
-
-class ViewSchedule:
-    """The context views of each step (:attr:`RDOConfig.views_per_step`): passes over the ``num_views`` views in a
-    fresh random order each (a CPU generator seeded with ``seed``), ``per_step`` at a time; a pass's last group
-    may be smaller. Calling it gives the next step's sorted view indices, or None when every view is used."""
-
-    def __init__(self, per_step: int, num_views: int, seed: int):
-        self.per_step = per_step if 0 < per_step < num_views else 0
-        self.num_views = num_views
-        self.generator = torch.Generator().manual_seed(seed)
-        self.queue: list[int] = []
-
-    def __call__(self) -> list[int] | None:
-        if not self.per_step:
-            return None
-        if not self.queue:
-            self.queue = torch.randperm(self.num_views, generator=self.generator).tolist()
-        views, self.queue = self.queue[:self.per_step], self.queue[self.per_step:]
-        return sorted(views)
 
 
 def psnr_of_mse(mse: float) -> float:
@@ -597,7 +557,6 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
         optimiser = latent_optimiser(variables, config)
         first_lr = optimiser.param_groups[0]["lr"]
         generator = torch.Generator(device=images.device).manual_seed(config.seed)
-        schedule = ViewSchedule(config.views_per_step, cameras.num_views, config.seed)
         model.train()
         decoder = step_decoder(model, target, variables, config)
         step, stopped = 0, "steps"
@@ -614,7 +573,7 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
                     for group in optimiser.param_groups:
                         group["lr"] = _learning_rate(config, first_lr, step, elapsed)
                     rdo_step(model, variables, optimiser, target, config, generator, decoder,
-                             annealing_temperature(config, step, elapsed), schedule())
+                             annealing_temperature(config, step, elapsed))
                     step += 1
                     _advance(bar, config, step, began)
                     if config.check_every and step % config.check_every == 0 and step != config.steps:
@@ -664,15 +623,13 @@ def latent_optimiser(variables: list[torch.Tensor], config: RDOConfig) -> torch.
 
 def rdo_step(model, variables: list[torch.Tensor], optimiser: torch.optim.Optimizer, target: RDOTarget,
              config: RDOConfig, generator: torch.Generator | None, decoder: GraphedDecoder | None = None,
-             temperature: float | None = None, views: list[int] | None = None) -> None:
+             temperature: float | None = None) -> None:
     """One optimisation step of the optimised tensors ``variables`` in place (training quantiser; no host
     synchronisation of its own): loss, backward, non-finite gradients zeroed, Adam, clamp to
-    +-:data:`LATENT_LIMIT`. ``decoder``: see :func:`step_decoder`; ``temperature``, ``views``: see
-    :func:`rdo_loss`."""
+    +-:data:`LATENT_LIMIT`. ``decoder``: see :func:`step_decoder`; ``temperature``: see :func:`rdo_loss`."""
     model.train()
     optimiser.zero_grad(set_to_none=True)
-    loss, _ = rdo_loss(model, variables, target, config, generator, decoder=decoder, temperature=temperature,
-                       views=views)
+    loss, _ = rdo_loss(model, variables, target, config, generator, decoder=decoder, temperature=temperature)
     loss.backward()
     with record_function("optimiser"), torch.no_grad():
         for v in variables:
