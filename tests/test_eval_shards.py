@@ -109,12 +109,13 @@ def test_a_run_split_another_way_is_not_resumed(tmp_path):
 
 def test_with_rdo_rows_the_base_rows_and_each_rdo_group_of_a_scene_are_dealt_apart_by_cost():
     config = EvalConfig(data="x", out="o", lambdas=(64.0, 256.0), baselines=(), rdo_steps=(2,))
-    assert shards._group_costs(config) == {"base": 4.0, "2 steps λ=64": 6.0, "2 steps λ=256": 6.0}
+    assert shards._group_costs(config) == {"base": 4 * shards.BASE_ROW_STEPS, "2 steps λ=64": 2.0,
+                                           "2 steps λ=256": 2.0}
     split = shards._split(config, ["a", "c"], 3)
-    assert [shard.units for shard in split] == [(("a", "2 steps λ=64"), ("c", "2 steps λ=256")),
-                                                (("a", "base"), ("a", "2 steps λ=256")),
-                                                (("c", "base"), ("c", "2 steps λ=64"))]
-    assert [shard.scenes for shard in split] == [("a", "c"), ("a",), ("c",)] and split[2].out == "o/shards/2"
+    assert [shard.units for shard in split] == [(("a", "base"),), (("c", "base"),),
+                                                (("a", "2 steps λ=64"), ("a", "2 steps λ=256"),
+                                                 ("c", "2 steps λ=64"), ("c", "2 steps λ=256"))]
+    assert [shard.scenes for shard in split] == [("a",), ("c",), ("a", "c")] and split[2].out == "o/shards/2"
     assert len(shards._split(config, ["a", "c"], 8)) == 6  # no more workers than units
     for whole in (replace(config, rdo_steps=()), replace(config, renders=True)):  # whole scenes, as many as asked
         assert [(s.scenes, s.units) for s in shards._split(whole, ["a", "b", "c"], 2)] == [(("a", "c"), ()),
@@ -215,7 +216,7 @@ def test_eval_with_rdo_rows_over_three_cpu_workers_writes_what_one_process_write
     assert _without(three["config"], {"out"}) == _without(one["config"], {"out"})
     assert three["tables"]["table1"] == one["tables"]["table1"]
     worker = [json.loads((tmp_path / "three" / "shards" / str(k) / "results.json").read_text()) for k in range(3)]
-    assert [len(w["rows"]) for w in worker] == [2 + 2, 2 + 2 * 5, 2 + 2 * 5]  # RDO rows, base rows
+    assert [len(w["rows"]) for w in worker] == [2 * 5, 2 * 5, 2 * 4]  # a's, c's base rows; every RDO row
     # the same command again: every shard resumes, nothing is run (the workers in this process: no start-up)
     monkeypatch.setattr(shards, "run_sharded", lambda task, parts, devices, **_: [task(p, CPU) for p in parts])
     monkeypatch.setattr(Evaluator, "run", None)
