@@ -175,6 +175,35 @@ def test_the_optional_terms_enter_the_loss_only_when_weighted():
     assert float(more) == pytest.approx(float(expected), rel=1e-5)
 
 
+def test_a_cpu_run_has_the_heads_channels_last_and_gives_their_weights_back():
+    model = tiny_coding_model(0)
+    images, cameras = _scene()
+    weight = next(t for t in model.gs_head.parameters() if t.dim() == 4 and t.shape[1] > 1 and t.shape[2] > 1)
+    assert not weight.is_contiguous(memory_format=torch.channels_last)
+    before = [(name, t.data_ptr(), t.stride()) for name, t in model.state_dict(keep_vars=True).items()]
+    layouts = []
+
+    def on_check(check, compressed):
+        layouts.append(weight.is_contiguous(memory_format=torch.channels_last))
+        assert all(t.is_contiguous() for t in model.codec.parameters()), "the codec keeps its layout"
+
+    model.encode_scene(images, cameras, LAM, steps=3, seed=1, rdo_settings={"check_every": 1}, on_check=on_check)
+    assert layouts and all(layouts), "channels-last during the run"
+    assert [(name, t.data_ptr(), t.stride()) for name, t in model.state_dict(keep_vars=True).items()] == before
+    start = _start(model, images, cameras)
+    config = rdo.RDOConfig(steps=1)
+    target = rdo.rdo_target(model, images, cameras, LAM, start, config)
+    with torch.no_grad():
+        plain = rdo.rdo_loss(model, start.latents, target, config, torch.Generator().manual_seed(0))[0]
+        originals = rdo.heads_channels_last(model, torch.device("cpu"))
+        try:
+            last = rdo.rdo_loss(model, start.latents, target, config, torch.Generator().manual_seed(0))[0]
+        finally:
+            rdo.restore_weights(originals)
+    assert originals and float(last) == pytest.approx(float(plain), rel=1e-5), "the same loss in either layout"
+    assert rdo.heads_channels_last(model, torch.device("cuda")) == [], "nothing changes on CUDA"
+
+
 def _start(model, images, cameras):
     with torch.no_grad():
         return model.codec.compress(model(images, cameras)["F_c"], LAM, reconstruct=True)
