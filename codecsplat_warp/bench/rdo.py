@@ -43,8 +43,8 @@ from ..measure import format_table, machine_name, synchronize
 from ..metrics import LPIPS
 from ..metrics.image import ImageMetrics
 from ..model import pretrained
-from ..model.rdo import (RDOConfig, heads_channels_last, latent_optimiser, other_views_gaussians, psnr_of_mse,
-                         rdo_config, rdo_step, rdo_target, restore_weights, start_variables, step_decoder)
+from ..model.rdo import (RDOConfig, decoder_fixed, latent_optimiser, other_views_gaussians, psnr_of_mse, rdo_config,
+                         rdo_step, rdo_target, start_variables, step_decoder)
 from .options import RDO_PROFILE_PARTS
 
 METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
@@ -351,10 +351,7 @@ def profile_step(model, sample: Sample, lam: float, settings: dict, steps: int, 
     target = rdo_target(model, sample.context_images, sample.context_cameras, lam, start, config, perceptual)
     latents = start_variables(start, config, feature)
     optimiser = latent_optimiser(latents, config)
-    frozen = [p.requires_grad for p in model.parameters()]
-    model.requires_grad_(False)
-    originals = heads_channels_last(model, device)
-    try:
+    with decoder_fixed(model, device):
         model.train()
         decoder = step_decoder(model, target, latents, config)
 
@@ -374,11 +371,6 @@ def profile_step(model, sample: Sample, lam: float, settings: dict, steps: int, 
         with profile(activities=activities) as prof:
             step()
             synchronize(device)
-    finally:
-        restore_weights(originals)
-        for p, flag in zip(model.parameters(), frozen):
-            p.requires_grad_(flag)
-        model.eval()
     parts = _step_parts(prof.events(), device)
     return {"scene": sample.scene, "views": sample.context_cameras.num_views,
             "size": [sample.context_cameras.width, sample.context_cameras.height], "lambda": lam,

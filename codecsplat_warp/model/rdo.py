@@ -39,11 +39,12 @@ why). With the same ``seed`` two runs on the CPU give the same latents.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 import warnings
 from dataclasses import dataclass, field, fields, replace
-from typing import Callable
+from typing import Callable, Iterator
 
 import torch
 from torch.nn import functional as F
@@ -538,9 +539,6 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
     if start.feature is None:
         raise InputError("optimise_latents needs the amortised coding's feature: compress with reconstruct=True")
     variables = start_variables(start, config, feature)
-    was_training = model.training
-    frozen = [p.requires_grad for p in model.parameters()]
-    model.requires_grad_(False)
     checks: list[RDOCheck] = []
     kept: dict = {}
 
@@ -551,8 +549,7 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
         if on_check is not None:
             on_check(check, compressed)
 
-    originals = heads_channels_last(model, images.device)
-    try:
+    with decoder_fixed(model, images.device):
         target = rdo_target(model, images, cameras, lam, start, config, perceptual)
         record(_measure(model, start, target, config, 0, time.perf_counter() - began), start)
         optimiser = latent_optimiser(variables, config)
@@ -596,6 +593,19 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
             else:
                 record(*measured)
         return RDOResult(kept["compressed"], kept["check"].step, step, time.perf_counter() - began, stopped, checks)
+
+
+@contextlib.contextmanager
+def decoder_fixed(model, device: torch.device) -> Iterator[None]:
+    """The model set up for an optimisation through it on ``device``: every parameter frozen (no weight gradients)
+    and, on the CPU, the decoder heads channels-last (:func:`heads_channels_last`); its parameters' gradient flags,
+    weights and training mode given back when the block ends, however it ends."""
+    was_training = model.training
+    frozen = [p.requires_grad for p in model.parameters()]
+    model.requires_grad_(False)
+    originals = heads_channels_last(model, device)
+    try:
+        yield
     finally:
         restore_weights(originals)
         for p, flag in zip(model.parameters(), frozen):
@@ -605,8 +615,9 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
 
 CPU_CHANNELS_LAST = ("depth_head", "refine_post", "gs_head")
 """The decoder modules whose convolutions an RDO run on the CPU runs in channels-last layout (oneDNN's faster path:
-a 2-view step of llff_horns on the 2-core EPYC 4.16 -> 3.90 s, medians of 12 interleaved steps). Not the codec: its float64 prior path must compute
-what every decoder computes, bit for bit. Not on CUDA, where channels-last was slower."""
+a 2-view step of llff_horns on the 2-core EPYC 4.16 -> 3.90 s, medians of 12 interleaved steps). Not the codec: its
+float64 prior path must compute what every decoder computes, bit for bit. Not on CUDA, where channels-last was
+slower."""
 
 
 def heads_channels_last(model, device: torch.device) -> list[tuple[torch.Tensor, torch.Tensor]]:
