@@ -84,10 +84,15 @@ def split_round_robin(items: Sequence, parts: int) -> list[list]:
     Raises:
         InputError: ``parts`` is not a positive integer.
     """
-    if isinstance(parts, bool) or not isinstance(parts, int) or parts < 1:
-        raise InputError(f"the part count must be a positive integer, got {parts!r}")
+    _check_parts(parts)
     items = list(items)
     return [items[k::parts] for k in range(parts)]
+
+
+def _check_parts(parts: int) -> None:
+    """InputError unless ``parts`` is a positive integer (a count of lists to deal into)."""
+    if isinstance(parts, bool) or not isinstance(parts, int) or parts < 1:
+        raise InputError(f"the part count must be a positive integer, got {parts!r}")
 
 
 def deal_by_cost(items: Sequence, costs: Sequence[float], parts: int) -> list[list]:
@@ -98,7 +103,7 @@ def deal_by_cost(items: Sequence, costs: Sequence[float], parts: int) -> list[li
     Raises:
         InputError: ``parts`` is not a positive integer, or ``costs`` is not one number >= 0 per item.
     """
-    split_round_robin((), parts)  # the part count's check
+    _check_parts(parts)
     items, costs = list(items), [float(c) for c in costs]
     if len(costs) != len(items) or any(not c >= 0 for c in costs):
         raise InputError(f"deal_by_cost needs one cost >= 0 per item, got {len(costs)} for {len(items)} items")
