@@ -12,9 +12,67 @@ from torch.nn import functional as F
 from ..errors import InputError
 
 
-def group_norm(channels: int) -> nn.GroupNorm:
+class _GroupNormByChannelScale(torch.autograd.Function):
+    """Group norm whose forward takes each group's moments with ``torch.var_mean`` and applies them as one
+    per-(sample, channel) scale and shift; the backward is ATen's own group-norm backward.
+
+    Why: ATen's CUDA group norm reduces each (sample, group) in a single thread block, so the model's
+    few-group, full-resolution maps (2 views x 8 groups = 16 blocks for 256x256x32 values each) leave most of
+    a GPU idle; ``var_mean`` splits such a reduction over the whole GPU. Under CUDA autocast it runs in
+    float32, as ATen's group norm does.
+    """
+
+    @staticmethod
+    @torch.amp.custom_fwd(device_type="cuda", cast_inputs=torch.float32)
+    def forward(ctx, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, groups: int,
+                eps: float) -> torch.Tensor:
+        x = x.contiguous()
+        n, c = x.shape[:2]
+        var, mean = torch.var_mean(x.view(n, groups, -1), dim=2, correction=0)  # [n, groups] each
+        rstd = torch.rsqrt(var + eps)
+        per_group = c // groups
+        scale = rstd.repeat_interleave(per_group, dim=1) * weight  # [n, c]
+        shift = bias - mean.repeat_interleave(per_group, dim=1) * scale
+        trailing = (1,) * (x.dim() - 2)
+        ctx.save_for_backward(x, weight, mean, rstd)
+        ctx.groups = groups
+        return torch.addcmul(shift.view(n, c, *trailing), x, scale.view(n, c, *trailing))
+
+    @staticmethod
+    @torch.amp.custom_bwd(device_type="cuda")
+    def backward(ctx, grad: torch.Tensor):
+        x, weight, mean, rstd = ctx.saved_tensors
+        n, c = x.shape[:2]
+        grad_x, grad_weight, grad_bias = torch.ops.aten.native_group_norm_backward(
+            grad.contiguous(), x, mean, rstd, weight, n, c, x[0, 0].numel(), ctx.groups,
+            [bool(flag) for flag in ctx.needs_input_grad[:3]])
+        return grad_x, grad_weight, grad_bias, None, None
+
+
+def group_norm_by_channel_scale(x: torch.Tensor, groups: int, weight: torch.Tensor, bias: torch.Tensor,
+                                eps: float = 1e-5) -> torch.Tensor:
+    """``F.group_norm(x, groups, weight, bias, eps)`` for x ``[N, C, ...]`` (float32 or float64, C divisible by
+    ``groups``; weight and bias ``[C]``), computed as :class:`_GroupNormByChannelScale` does; same values to
+    rounding, same gradients (first order)."""
+    if x.dim() < 3 or x.shape[1] % groups or weight.shape != (x.shape[1],) or bias.shape != (x.shape[1],):
+        raise InputError(f"group norm of {tuple(x.shape)} into {groups} groups needs [N, C, ...] with C divisible "
+                         f"by the groups and weight, bias [C]; got {tuple(weight.shape)}, {tuple(bias.shape)}")
+    return _GroupNormByChannelScale.apply(x, weight, bias, groups, eps)
+
+
+class GroupNorm(nn.GroupNorm):
+    """``nn.GroupNorm`` (same parameters, state-dict keys and values) that on CUDA normalises with
+    :func:`group_norm_by_channel_scale`, whose moments use the whole GPU; elsewhere ATen's group norm."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.is_cuda and self.affine:
+            return group_norm_by_channel_scale(x, self.num_groups, self.weight, self.bias, self.eps)
+        return super().forward(x)
+
+
+def group_norm(channels: int) -> GroupNorm:
     """GroupNorm with up to 8 groups (batch-size independent: training runs one scene per GPU)."""
-    return nn.GroupNorm(math.gcd(8, channels), channels)
+    return GroupNorm(math.gcd(8, channels), channels)
 
 
 def conv3x3(in_channels: int, out_channels: int, stride: int = 1) -> nn.Conv2d:
