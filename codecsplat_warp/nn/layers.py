@@ -17,7 +17,7 @@ class _GroupNormByChannelScale(torch.autograd.Function):
     per-(sample, channel) scale and shift; the backward is ATen's own group-norm backward.
 
     Why: ATen's CUDA group norm reduces each (sample, group) in a single thread block, so the model's
-    few-group, full-resolution maps (2 views x 8 groups = 16 blocks for 256x256x32 values each) leave most of
+    few-group, full-resolution maps (2 views x 8 groups = 16 blocks of 8 x 256 x 256 values each) leave most of
     a GPU idle; ``var_mean`` splits such a reduction over the whole GPU. Under CUDA autocast it runs in
     float32, as ATen's group norm does.
     """
