@@ -39,9 +39,28 @@ def test_ops_exports_the_public_ops():
     assert public <= set(ops.__all__), f"public ops missing from codecsplat_warp.ops: {public - set(ops.__all__)}"
 
 
-@pytest.mark.parametrize("first", ["codecsplat_warp.codec", "codecsplat_warp.model", "codecsplat_warp.errors",
-                                   "codecsplat_warp.kernels", "codecsplat_warp.nn.config", "codecsplat_warp.gaussians"])
-def test_any_module_imports_first(first):
-    code = f"import {first}; from codecsplat_warp import CodecSplat; from codecsplat_warp.codec import LatentCodec"
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert result.returncode == 0, result.stderr
+FIRST_IMPORTS = ("codecsplat_warp.codec", "codecsplat_warp.model", "codecsplat_warp.errors", "codecsplat_warp.kernels",
+                 "codecsplat_warp.nn.config", "codecsplat_warp.gaussians")
+
+
+@pytest.fixture(scope="module")
+def fresh_interpreters():
+    """One fresh interpreter per module of FIRST_IMPORTS that imports it first, then the front door; all started
+    at once (each spends seconds importing torch and Warp), killed if a test leaves one running."""
+    started = {}
+    for first in FIRST_IMPORTS:
+        code = f"import {first}; from codecsplat_warp import CodecSplat; from codecsplat_warp.codec import LatentCodec"
+        started[first] = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                          text=True)
+    yield started
+    for process in started.values():
+        if process.poll() is None:
+            process.kill()
+        process.communicate()
+
+
+@pytest.mark.parametrize("first", FIRST_IMPORTS)
+def test_any_module_imports_first(first, fresh_interpreters):
+    process = fresh_interpreters[first]
+    _, stderr = process.communicate(timeout=300)
+    assert process.returncode == 0, stderr
