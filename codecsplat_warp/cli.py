@@ -529,7 +529,7 @@ def _cmd_render(args) -> int:
 
 def _cmd_eval(args) -> int:
     from .eval.evaluate import BASELINE_NAMES, EvalConfig
-    from .eval.shards import evaluate_sharded, shard_devices
+    from .eval.shards import evaluate_sharded, format_worker_seconds, shard_devices
 
     baselines = () if args.baselines.strip().lower() == "none" else tuple(
         b.strip() for b in args.baselines.split(",") if b.strip())
@@ -557,6 +557,8 @@ def _cmd_eval(args) -> int:
              f"LPIPS: {result['lpips']}"]
     if result["skipped"]:
         lines.append("skipped: " + ", ".join(s["scene"] for s in result["skipped"]))
+    if "worker_seconds" in result:  # dealt over worker processes
+        lines.append(format_worker_seconds(result["wall_s"], result["worker_seconds"], "samples"))
     lines.append("wrote " + ", ".join(result["files"].values()))
     _emit(args, result, lines)
     return EXIT_OK

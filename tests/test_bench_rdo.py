@@ -97,7 +97,7 @@ def test_workers_give_the_rows_of_one_process(workspace):
                       *(("codecsplat", lam, n) for lam in (64.0, 256.0) for n in (0, 2))]]
     assert [(r["scene"], r["method"], r.get("lambda"), r.get("steps")) for r in two["rows"]] == order
     timing = two["worker_seconds"]
-    assert sorted(w["pairs"] for w in timing) == [2, 2] and len(one["worker_seconds"]) == 1
+    assert sorted(w["units"] for w in timing) == [2, 2] and len(one["worker_seconds"]) == 1
     assert all(w[key] >= 0 for w in timing + one["worker_seconds"] for key in ("start_s", "load_s", "work_s"))
     assert two["wall_s"] >= max(w["start_s"] + w["load_s"] + w["work_s"] for w in timing) - 1e-3
     for a, b in zip(one["rows"], two["rows"]):

@@ -17,7 +17,8 @@ from codecsplat_warp.cli import main
 from codecsplat_warp.errors import DataError, InputError, ShardError
 from codecsplat_warp.eval import shards
 from codecsplat_warp.eval.evaluate import EvalConfig, Evaluator, check_config
-from codecsplat_warp.eval.shards import report_progress, run_sharded, shard_devices, split_round_robin
+from codecsplat_warp.eval.shards import (format_worker_seconds, report_progress, run_sharded, shard_devices,
+                                         split_round_robin, worker_seconds)
 from codecsplat_warp.metrics import WEIGHTS_ENV
 from codecsplat_warp.model.pretrained import save_pretrained
 from conftest import tiny_coding_model
@@ -165,8 +166,17 @@ def _close(a, b) -> bool:
     return a == b
 
 
+def test_worker_seconds_give_a_line_per_worker():
+    seconds = worker_seconds(3, started=100.0, entered=102.5, loaded=104.0)
+    assert (seconds["units"], seconds["start_s"], seconds["load_s"]) == (3, 2.5, 1.5) and seconds["work_s"] > 0
+    lines = format_worker_seconds(9.0, [seconds, {**seconds, "units": 0}], "samples").splitlines()
+    assert lines[0] == "2 worker(s), 9.0 s from the split to the last result" and len(lines) == 3
+    assert lines[1].startswith("  worker 0: 3 samples, start 2.5 s, load 1.5 s, work ")
+    assert lines[2].startswith("  worker 1: 0 samples, start 2.5 s")
+
+
 @pytest.mark.slow  # about 30 s on 2 CPU cores: three runs, two of them starting two worker processes
-def test_eval_over_two_cpu_workers_writes_what_one_process_writes(tmp_path, monkeypatch):
+def test_eval_over_two_cpu_workers_writes_what_one_process_writes(tmp_path, monkeypatch, capsys):
     monkeypatch.delenv(WEIGHTS_ENV, raising=False)  # no LPIPS: shorter runs
     save_pretrained(tiny_coding_model(0), tmp_path / "tiny.safetensors")
     for name, seed, views in (("a", 1, 3), ("b", 2, 2), ("c", 3, 3)):  # b has too few views: skipped
@@ -175,8 +185,13 @@ def test_eval_over_two_cpu_workers_writes_what_one_process_writes(tmp_path, monk
                "none", "--targets", "1", "--renders", "--device", "cpu", "--json", "--checkpoint",
                str(tmp_path / "tiny.safetensors")]
     assert main([*command, "-o", str(tmp_path / "one"), "--workers", "1"]) == 0
+    capsys.readouterr()
     assert main([*command, "-o", str(tmp_path / "two"), "--workers", "2"]) == 0
+    printed = json.loads(capsys.readouterr().out)  # where each worker's time went: printed, not in results.json
+    assert [w["units"] for w in printed["worker_seconds"]] == [2, 0] and printed["wall_s"] > 0
+    assert all(w[key] >= 0 for w in printed["worker_seconds"] for key in ("start_s", "load_s", "work_s"))
     one, two = (json.loads((tmp_path / out / "results.json").read_text()) for out in ("one", "two"))
+    assert "worker_seconds" not in two
     assert list(two) == list(one) and two["plan"] == one["plan"] and two["scenes"] == ["a", "c"]
     assert len(two["rows"]) == 2 * 3 and _close([_without(r, TIMINGS) for r in two["rows"]],
                                                  [_without(r, TIMINGS) for r in one["rows"]])

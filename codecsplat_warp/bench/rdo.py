@@ -37,7 +37,8 @@ from ..errors import InputError
 from ..eval.protocols import (PROTOCOLS, Sample, eager_plan, find_scenes, folder_index_plan, nearest_context_images,
                               scene_samples, select_scenes)
 from ..eval.report import plot_comparison, pyplot, save_figure
-from ..eval.shards import report_progress, run_sharded, shard_devices, split_round_robin
+from ..eval.shards import (format_worker_seconds, report_progress, run_sharded, shard_devices, split_round_robin,
+                           worker_seconds)
 from ..export.video import to_uint8_frames
 from ..measure import format_table, machine_name, synchronize
 from ..metrics import LPIPS
@@ -84,7 +85,7 @@ def run(args: argparse.Namespace) -> dict:
                   worker_seconds=[timing for _, _, timing in results])
     if not args.json:
         print(format_summary(result["summary"], result["machine"]))
-        print(format_worker_seconds(result["wall_s"], result["worker_seconds"]))
+        print(format_worker_seconds(result["wall_s"], result["worker_seconds"], "sample-lambda pairs"))
     if args.plot:
         plot_curve(result["summary"], pathlib.Path(args.plot))
     return result
@@ -109,8 +110,9 @@ def bench_samples(shard: tuple[dict, list[tuple[Sample, list[int]]]],
                   device: torch.device) -> tuple[list[dict], str, dict[str, float]]:
     """One worker's part (:func:`~codecsplat_warp.eval.shards.run_sharded`): the rows of each of its samples at the
     lambdas (indices into the job's) dealt to it (:func:`bench_sample`; the references come with a sample's first
-    lambda), what its LPIPS scores are, and where its time went (:func:`format_worker_seconds`). The units are
-    (sample, lambda) pairs, not samples, so that a held-out set of a few scenes still spreads evenly over the GPUs."""
+    lambda), what its LPIPS scores are, and where its time went (:func:`~codecsplat_warp.eval.shards.worker_seconds`).
+    The units are (sample, lambda) pairs, not samples, so that a held-out set of a few scenes still spreads evenly
+    over the GPUs."""
     job, part = shard
     entered = time.time()
     model = pretrained.load_pretrained(job["checkpoint"], device)
@@ -126,19 +128,8 @@ def bench_samples(shard: tuple[dict, list[tuple[Sample, list[int]]]],
         warmed.add(shape)
         done += len(ks)
         report_progress(done, total)
-    seconds = {"pairs": total, "start_s": entered - job["started"], "load_s": loaded - entered,
-               "work_s": time.time() - loaded}
+    seconds = worker_seconds(total, job["started"], entered, loaded)  # the model and metrics its load
     return rows, metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1", seconds
-
-
-def format_worker_seconds(wall_s: float, workers: list[dict[str, float]]) -> str:
-    """A line per worker: its (sample, lambda) pairs, the seconds from the command's split to the worker's first
-    instruction (process start, imports; ~0 for a single worker, which runs in the command's process), loading the
-    model and metrics, and the pairs' work (warm-up encodes included); the wall time of the split first."""
-    lines = [f"{len(workers)} worker(s), {wall_s:.1f} s from the split to the last row"]
-    lines += [f"  worker {k}: {w['pairs']} pairs, start {w['start_s']:.1f} s, load {w['load_s']:.1f} s, "
-              f"work {w['work_s']:.1f} s" for k, w in enumerate(workers)]
-    return "\n".join(lines)
 
 
 def _key(item) -> tuple:

@@ -26,6 +26,7 @@ import pickle
 import shutil
 import signal
 import sys
+import time
 import traceback
 from collections import Counter
 from dataclasses import replace
@@ -126,6 +127,23 @@ def report_progress(done: int, total: int) -> None:
     (e.g. samples); its progress bar shows the sums over the shards. Does nothing outside :func:`run_sharded`."""
     if _report is not None:
         _report(done, total)
+
+
+def worker_seconds(units: int, started: float, entered: float, loaded: float) -> dict[str, float]:
+    """Where a worker of :func:`run_sharded` spent its time, for :func:`format_worker_seconds`: its ``units`` of
+    work, ``start_s`` from the command's split (``started``, ``time.time()`` in the command's process) to the task's
+    first instruction (``entered``: process start, imports; ~0 for a single worker, which runs in the command's
+    process), ``load_s`` to ``loaded`` (the model and what the task loads once), ``work_s`` from then to now."""
+    return {"units": units, "start_s": entered - started, "load_s": loaded - entered, "work_s": time.time() - loaded}
+
+
+def format_worker_seconds(wall_s: float, workers: list[dict[str, float]], unit: str) -> str:
+    """A line per worker of its :func:`worker_seconds` (``unit``: what a unit is, plural, e.g. ``"samples"``); the
+    wall seconds from the split to the last result first."""
+    lines = [f"{len(workers)} worker(s), {wall_s:.1f} s from the split to the last result"]
+    lines += [f"  worker {k}: {w['units']} {unit}, start {w['start_s']:.1f} s, load {w['load_s']:.1f} s, "
+              f"work {w['work_s']:.1f} s" for k, w in enumerate(workers)]
+    return "\n".join(lines)
 
 
 def run_sharded(task: Callable, shards: list, devices: list[torch.device], *, threads: int | None = None,
@@ -368,7 +386,9 @@ def evaluate_sharded(config: EvalConfig, checkpoint: str | None, device: torch.d
         workers: the workers' devices (:func:`shard_devices`); more workers than units are not started.
         threads: CPU threads per worker process (None: the available cores shared out).
     Returns:
-        the result dict of :func:`~codecsplat_warp.eval.evaluate.evaluate`.
+        the result dict of :func:`~codecsplat_warp.eval.evaluate.evaluate` (what results.json holds); dealt over
+        workers, with ``wall_s`` (from the split to the merge) and each worker's ``worker_seconds``
+        (:func:`worker_seconds`) beside it, which results.json does not hold.
     Raises:
         InputError, DataError: as :func:`~codecsplat_warp.eval.evaluate.evaluate` (raised in a worker: prefixed with
             its shard; a worker whose scenes are all unusable only adds them to ``skipped``); DataError also when
@@ -382,9 +402,11 @@ def evaluate_sharded(config: EvalConfig, checkpoint: str | None, device: torch.d
         return evaluate(load_pretrained(checkpoint, device), config, device)
     if config.resume:
         _check_split(pathlib.Path(config.out), shards)
-    results = run_sharded(_evaluate_shard, [(shard, checkpoint) for shard in shards], workers[:len(shards)],
+    started = time.time()
+    results = run_sharded(_evaluate_shard, [(shard, checkpoint, started) for shard in shards], workers[:len(shards)],
                           threads=threads, progress=config.progress, desc="eval", unit="sample")
-    return _merge(config, device, scenes, shards, results)
+    merged = _merge(config, device, scenes, shards, results)
+    return {**merged, "wall_s": time.time() - started, "worker_seconds": [r["worker_seconds"] for r in results]}
 
 
 def _units(config: EvalConfig, scenes: list[str]) -> list[tuple[str, str | None]]:
@@ -439,14 +461,20 @@ def _shard(config: EvalConfig, scenes: list[str], k: int, units: list[tuple[str,
                    out=str(pathlib.Path(config.out) / "shards" / str(k)), progress=False)
 
 
-def _evaluate_shard(shard: tuple[EvalConfig, str | None], device: torch.device) -> dict:
-    """A worker of :func:`evaluate_sharded`: the evaluation of its share (config, checkpoint) on ``device``,
-    reporting its finished samples; only the skipped scenes (and an empty plan and rows) when none is usable."""
-    config, checkpoint = shard
+def _evaluate_shard(shard: tuple[EvalConfig, str | None, float], device: torch.device) -> dict:
+    """A worker of :func:`evaluate_sharded`: the evaluation of its share (config, checkpoint, the split's
+    ``time.time()``) on ``device``, reporting its finished samples; only the skipped scenes (and an empty plan and
+    rows) when none is usable; with where its time went (``worker_seconds``: :func:`worker_seconds`, its samples
+    the units, the model its load; LPIPS, the samples and a warm-up encode are work)."""
+    config, checkpoint, started = shard
+    entered = time.time()
+    model = load_pretrained(checkpoint, device)
+    loaded = time.time()
     try:
-        return evaluate(load_pretrained(checkpoint, device), config, device, on_sample=report_progress)
+        result = evaluate(model, config, device, on_sample=report_progress)
     except NoSamplesError as exc:  # every scene of this shard is unusable; other shards may have samples
-        return {"plan": [], "rows": [], "skipped": exc.skipped, "notes": []}
+        result = {"plan": [], "rows": [], "skipped": exc.skipped, "notes": []}
+    return {**result, "worker_seconds": worker_seconds(len(result["plan"]), started, entered, loaded)}
 
 
 def _check_split(out: pathlib.Path, shards: list[EvalConfig]) -> None:
