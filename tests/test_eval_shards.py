@@ -234,6 +234,10 @@ def test_eval_with_rdo_rows_over_two_cpu_workers_writes_what_one_process_writes(
     # by cost: one scene's base rows each (8 steps a row), then the four RDO units (2 steps a sample) two and two
     assert [len(w["rows"]) for w in worker] == [2 * 5 + 2 * 2, 2 * 5 + 2 * 2]
     assert all({r["scene"] for r in w["rows"] if r["rdo"]} == {"a", "c"} for w in worker)  # not dealt by scene
+    # the workers draw no plots (the merge does); their results name none
+    shards_out = tmp_path / "two_rdo" / "shards"
+    assert not list(shards_out.rglob("*.png")) and all(set(w["files"]) == {"json", "markdown"} for w in worker)
+    assert (tmp_path / "two_rdo" / "rate_distortion.png").is_file() and set(two["files"]) == set(one["files"])
     # the same command again: every shard resumes, nothing is run (the workers in this process: no start-up)
     monkeypatch.setattr(shards, "run_sharded", lambda task, parts, devices, **_: [task(p, CPU) for p in parts])
     monkeypatch.setattr(Evaluator, "run", None)

@@ -404,6 +404,9 @@ class EvalConfig:
     """(scene, row group) pairs (:func:`row_layout`: ``base`` or an RDO setting at a lambda, ``slow λ=64``): only
     the rows of those groups of each scene's samples, a worker's share of an evaluation dealt over processes
     (:func:`~codecsplat_warp.eval.shards.evaluate_sharded`); empty: every row."""
+    plots: bool = True
+    """Draw the rate-distortion and distortion-vs-time plots (a worker's share of an evaluation dealt over
+    processes draws none, about 2.6 s each on a GPU host: the merge draws them)."""
 
     @property
     def image_qualities(self) -> dict[str, tuple[int, ...]]:
@@ -411,7 +414,7 @@ class EvalConfig:
         return {"webp": self.webp_qualities, "jpeg": self.jpeg_qualities}
 
 
-RUN_SETTINGS = ("out", "progress", "resume", "renders")
+RUN_SETTINGS = ("out", "progress", "resume", "renders", "plots")
 """EvalConfig fields that do not change the results: a run may resume another that differs only in these."""
 
 CONFIG_DEFAULTS = {f.name: f.default for f in fields(EvalConfig) if f.default is not MISSING}
@@ -462,7 +465,7 @@ def evaluate(model, config: EvalConfig, device: torch.device,
                           rdo=rdo)
     out = pathlib.Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
-    files = result_files(out)
+    files = result_files(out, config.plots)
     header = results_header(
         config, protocol, device, machine=machine_name(device), model=model_id(model), scenes=[k[0] for k in plan.keys],
         skipped=plan.skipped, lpips=metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1",
@@ -544,11 +547,13 @@ def no_samples_error(config: EvalConfig, protocol: Protocol, skipped: list[dict]
                           skipped)
 
 
-def result_files(out: pathlib.Path) -> dict[str, pathlib.Path]:
-    """The files an evaluation writes in its output folder ``out``, by role (json, markdown, rate_distortion,
-    distortion_vs_time)."""
-    return {"json": out / "results.json", "markdown": out / "tables.md", "rate_distortion": out / "rate_distortion.png",
-            "distortion_vs_time": out / "distortion_vs_time.png"}
+def result_files(out: pathlib.Path, plots: bool = True) -> dict[str, pathlib.Path]:
+    """The files an evaluation writes in its output folder ``out``, by role (json, markdown, and with ``plots``
+    rate_distortion, distortion_vs_time)."""
+    files = {"json": out / "results.json", "markdown": out / "tables.md"}
+    if plots:
+        files.update(rate_distortion=out / "rate_distortion.png", distortion_vs_time=out / "distortion_vs_time.png")
+    return files
 
 
 def results_header(config: EvalConfig, protocol: Protocol, device: torch.device, *, machine: str, model: str,
@@ -559,7 +564,7 @@ def results_header(config: EvalConfig, protocol: Protocol, device: torch.device,
     the ``plan`` (scene, context and target views of every sample, in order) and the ``rdo`` settings."""
     return {"config": {**asdict(config), "protocol": asdict(protocol)}, "device": str(device), "machine": machine,
             "model_id": model, "scenes": sorted(set(scenes)), "skipped": skipped, "lpips": lpips,
-            "files": {role: str(path) for role, path in result_files(pathlib.Path(config.out)).items()},
+            "files": {role: str(path) for role, path in result_files(pathlib.Path(config.out), config.plots).items()},
             "plan": plan, "rdo": rdo}
 
 
@@ -567,7 +572,8 @@ def write_results(header: dict, rows: list[Row], mvs_depth: str | None, notes: l
     """Finish an evaluation: ``header`` (config, device, machine, model_id, scenes, skipped, lpips, files and plan,
     as :func:`evaluate` writes them) with every sample's ``rows`` in the plan's order, their summary, the reference
     depth they cover (``mvs_depth``: the ``--mvs-depth`` folder or None), ``notes`` and the tables, written to the
-    files ``header["files"]`` names (results.json, tables.md, the rate-distortion and distortion-vs-time plots).
+    files ``header["files"]`` names (results.json, tables.md and, where it names them, the rate-distortion and
+    distortion-vs-time plots).
 
     Returns:
         the result dict :func:`evaluate` returns.
@@ -581,8 +587,9 @@ def write_results(header: dict, rows: list[Row], mvs_depth: str | None, notes: l
     files = {role: pathlib.Path(path) for role, path in header["files"].items()}
     write_json(files["json"], result)
     write_text(files["markdown"], markdown_report(result))
-    plot_rate_distortion(summary, files["rate_distortion"])
-    plot_distortion_vs_time(summary, files["distortion_vs_time"])
+    if "rate_distortion" in files:
+        plot_rate_distortion(summary, files["rate_distortion"])
+        plot_distortion_vs_time(summary, files["distortion_vs_time"])
     return result
 
 

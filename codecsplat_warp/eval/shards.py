@@ -368,7 +368,8 @@ def evaluate_sharded(config: EvalConfig, checkpoint: str | None, device: torch.d
     the renders of several workers: with ``renders`` whole scenes are dealt.
 
     Worker k loads the model on its device and evaluates its share into ``config.out/shards/<k>/`` (its own
-    results.json, resumed like any evaluation when the same command runs again with the same workers). Then this
+    results.json, resumed like any evaluation when the same command runs again with the same workers, and
+    tables.md; no plots, :attr:`EvalConfig.plots`). Then this
     process writes results.json, tables.md and the plots to ``config.out`` as a one-process run does: each sample's
     rows in a one-process run's order, the samples in the plan's order, the same summary and tables, ``device`` and
     the machine of the first worker; with ``renders`` it copies each sample's picture to its one-process name,
@@ -458,7 +459,7 @@ def _shard(config: EvalConfig, scenes: list[str], k: int, units: list[tuple[str,
     names = {scene for scene, _ in units}
     return replace(config, scenes=tuple(scene for scene in scenes if scene in names),
                    units=tuple((scene, group) for scene, group in units if group is not None),
-                   out=str(pathlib.Path(config.out) / "shards" / str(k)), progress=False)
+                   out=str(pathlib.Path(config.out) / "shards" / str(k)), progress=False, plots=False)
 
 
 def _evaluate_shard(shard: tuple[EvalConfig, str | None, float], device: torch.device) -> dict:
