@@ -54,3 +54,19 @@ the useful step count grows with about the square of the view count."""
 
 RDO_MIN_PRESET_STEPS = 5
 """The fewest steps of a preset that optimises."""
+
+RDO_CROSS_VIEW_MAX_VIEWS = 2
+"""Scenes of at most this many context views get the cross-view term in the RDO loss (each view predicted by the
+other views' Gaussians; :func:`codecsplat_warp.model.rdo.cross_view_error`). With 2 views it keeps the fit from
+explaining each photograph with geometry the other view does not confirm, so the targets keep gaining with steps;
+with 8 views, where every view's render already mixes all views' Gaussians, it gained nothing for 80 % more time a
+step (docs/benchmarks.md)."""
+
+RDO_CROSS_VIEW_WEIGHT = 0.5
+"""The cross-view term's weight for the scenes of :data:`RDO_CROSS_VIEW_MAX_VIEWS` (0.5 beat 1 and 2 in PSNR and
+bytes on the held-out scenes)."""
+
+RDO_CROSS_VIEW_MIN_STEPS = {"medium": 25, "slow": 160}
+"""The fewest steps of each optimising preset when the cross-view term is on: with it the 2-view targets still
+gained at 160 steps, where without it they peaked near 20. ``medium`` takes less than a quarter of ``slow``'s steps
+because a run's fixed cost (the decoder's capture, the real codings) made 40 steps 31 % of ``slow``'s time."""

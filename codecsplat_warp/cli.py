@@ -110,8 +110,8 @@ def build_parser() -> argparse.ArgumentParser:
     encode.add_argument("--size", help="WIDTHxHEIGHT to resize and centre-crop to (default: the model's training size)")
     encode.add_argument("--preset", choices=list(RDO_PRESETS), default=None,
                         help="encoder rate-distortion optimisation: fast (the amortised encoder alone), medium or slow "
-                        "(optimisation steps: medium 1.25, slow 5 x views squared; 5/20 steps for 2 views, 80/320 for "
-                        "8) (default: medium on a CUDA GPU, fast on the CPU; see docs/cli.md)")
+                        "(optimisation steps: medium 1.25, slow 5 x views squared; 25/160 steps for 2 views, with a "
+                        "cross-view term, 80/320 for 8) (default: medium on a CUDA GPU, fast on the CPU; see docs/cli.md)")
     encode.add_argument("--steps", type=int, default=None,
                         help="optimisation steps, overriding the preset's count (default: the preset's)")
     encode.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",

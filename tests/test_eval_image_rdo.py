@@ -21,7 +21,7 @@ from codecsplat_warp.eval.report import (BACKBONE, CODECSPLAT, COPY_NEAREST, plo
                                          plot_rate_distortion, table1, table2)
 from codecsplat_warp.export.video import to_uint8_frames
 from codecsplat_warp.metrics.image import ImageMetrics
-from codecsplat_warp.choices import RDO_PRESETS
+from codecsplat_warp.choices import RDO_CROSS_VIEW_MIN_STEPS, RDO_PRESETS
 from codecsplat_warp.model.pretrained import save_pretrained
 from conftest import tiny_coding_model
 from test_cli_commands import write_indexed_scenes
@@ -52,6 +52,7 @@ class _Counter:
 
 def test_image_codec_and_rdo_rows_of_one_sample(scenes, model, monkeypatch):
     monkeypatch.setitem(RDO_PRESETS, "medium", 0.25)  # a preset's count, kept tiny (the least, 5 steps for 2 views)
+    monkeypatch.setitem(RDO_CROSS_VIEW_MIN_STEPS, "medium", 5)
     sample = index_samples(find_scenes(scenes / "data"), scenes / "index.json", PROTOCOLS["scene"])[0]
     codecs = [ImageCodec("webp", 5), ImageCodec("webp", 90), ImageCodec("jpeg", 10)]
     rdo = [RDOSetting(preset="medium"), RDOSetting(steps=1)]

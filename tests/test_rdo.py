@@ -14,6 +14,7 @@ from codecsplat_warp.checks import validation
 from codecsplat_warp.codec import parse_bitstream
 from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
 from codecsplat_warp.errors import InputError
+from codecsplat_warp.gaussians import Gaussians
 from codecsplat_warp.model import rdo
 from codecsplat_warp.model.codecsplat import model_id
 
@@ -149,12 +150,55 @@ def test_bad_arguments_get_a_typed_error_at_once(kwargs, match):
 
 def test_preset_configs():
     assert not rdo.rdo_config("fast").optimises
-    assert rdo.rdo_config("medium", views=2).steps == rdo.preset_steps("medium", 2) == 5
+    assert rdo.rdo_config("medium", views=2).steps == rdo.preset_steps("medium", 2) == 25
     assert rdo.rdo_config("slow", views=8).steps == rdo.preset_steps("slow", 8) == 320
-    assert rdo.preset_steps("medium", 8) * 4 == rdo.preset_steps("slow", 8), "medium takes a quarter of slow's steps"
+    assert rdo.preset_steps("slow", 1) == 5 and rdo.preset_steps("medium", 3) == 11
+    assert rdo.preset_steps("medium", 8) * 4 == rdo.preset_steps("slow", 8) == 320, "a quarter of slow's steps"
+    assert rdo.preset_steps("slow", 2) == 160, "with the cross-view term 2 views gain to 160 steps"
     assert rdo.rdo_config("fast", time_budget=3.0).steps is None
     assert rdo.rdo_config("slow", time_budget=3.0, views=2).steps == rdo.preset_steps("slow", 2)
     assert rdo.rdo_config("slow", steps=7).steps == 7
+
+
+def test_the_cross_view_term_is_tuned_by_view_count_and_can_be_overridden():
+    assert rdo.rdo_config("slow", views=2).cross_view_weight == 0.5
+    assert rdo.rdo_config("fast", steps=7, views=2).cross_view_weight == 0.5, "explicit steps get the tuned loss too"
+    assert rdo.rdo_config("slow", views=8).cross_view_weight == 0.0
+    assert rdo.rdo_config("slow", views=1).cross_view_weight == 0.0
+    assert rdo.rdo_config("slow", views=2, cross_view_weight=0.0).cross_view_weight == 0.0
+
+
+class _FixedRenders:
+    """A stand-in model whose render of view v gives the premultiplied colour colour[v] * alpha[v] and alpha[v]."""
+
+    def __init__(self, colour: torch.Tensor, alpha: torch.Tensor):
+        self.colour, self.alpha = colour, alpha
+
+    def render(self, gaussians, cameras, depth_range=None):
+        v = self.views.pop(0)
+        return {"rgb": self.colour[v:v + 1] * self.alpha[v:v + 1, None], "alpha": self.alpha[v:v + 1]}
+
+
+def _cross_error(colour: torch.Tensor, alpha: torch.Tensor, images: torch.Tensor, cameras) -> float:
+    model = _FixedRenders(colour, alpha)
+    model.views = list(range(images.shape[0]))
+    gaussians = Gaussians(torch.zeros(4, 3), torch.tensor([[1.0, 0, 0, 0]]).repeat(4, 1), torch.ones(4, 3),
+                              torch.full((4,), 0.5), torch.zeros(4, 1, 3))
+    return float(rdo.cross_view_error(model, gaussians, cameras, images, (0.1, 10.0)))
+
+
+def test_the_cross_view_error_is_the_covered_colour_error_and_transparency_does_not_lower_it():
+    images, cameras = _scene(5)
+    gen = torch.Generator().manual_seed(0)
+    colour = torch.rand(images.shape, generator=gen)
+    alpha = 0.2 + 0.7 * torch.rand(images[:, 0].shape, generator=gen)
+    error = _cross_error(colour, alpha, images, cameras)
+    expected = torch.stack([(alpha[v] * (colour[v] - images[v]).square()).sum() / (3 * alpha[v].sum())
+                            for v in range(2)]).mean()
+    assert error == pytest.approx(float(expected), rel=1e-5)
+    assert _cross_error(colour, alpha * 0.25, images, cameras) == pytest.approx(error, rel=1e-5), \
+        "fainter Gaussians of the same colour must not predict the view better"
+    assert _cross_error(images, alpha, images, cameras) == pytest.approx(0.0, abs=1e-10)
 
 
 def test_the_optional_terms_enter_the_loss_only_when_weighted():

@@ -335,7 +335,8 @@ def profile_step(model, sample: Sample, lam: float, settings: dict, steps: int, 
     from torch.profiler import ProfilerActivity, profile
 
     sample = sample.to(device)
-    config = rdo_config("fast", steps + 4, None, 0, **settings)  # the run below: 3 warm-up, timed, 1 profiled
+    # the run below: 3 warm-up, timed, 1 profiled
+    config = rdo_config("fast", steps + 4, None, 0, sample.context_cameras.num_views, **settings)
     with torch.no_grad():
         feature = model(sample.context_images, sample.context_cameras)["F_c"]
         start = model.codec.compress(feature, lam, reconstruct=True)

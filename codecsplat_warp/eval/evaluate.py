@@ -61,8 +61,8 @@ import torch
 from tqdm.auto import tqdm
 
 from ..baselines import FeatureDeflate, ImageCodec, PlyDeflate, PngCompression
-from ..choices import (BASELINE_NAMES, IMAGE_CODEC_QUALITIES, OUTPUT_BASELINES, PAPER_LAMBDAS, RDO_MIN_PRESET_STEPS,
-                       RDO_PRESETS)
+from ..choices import (BASELINE_NAMES, IMAGE_CODEC_QUALITIES, OUTPUT_BASELINES, PAPER_LAMBDAS,
+                       RDO_CROSS_VIEW_MAX_VIEWS, RDO_CROSS_VIEW_MIN_STEPS, RDO_MIN_PRESET_STEPS, RDO_PRESETS)
 from ..codec import bytes_report, check_lambda
 from ..errors import DataError, InputError, NoSamplesError
 from ..export.files import write_json, write_text
@@ -121,10 +121,13 @@ class RDOSetting:
     @property
     def resolved_steps(self) -> int | str:
         """The optimisation steps it takes: a count, or a preset's rule as :mod:`codecsplat_warp.choices` sets it now
-        (``5 x views^2``, at least :data:`~codecsplat_warp.choices.RDO_MIN_PRESET_STEPS`)."""
+        (``5 x views^2, at least 5; at least 160 with the cross-view term of up to 2 views``;
+        :func:`~codecsplat_warp.model.rdo.preset_steps`)."""
         if self.steps is not None:
             return self.steps
-        return f"{RDO_PRESETS[self.preset]:g} x views^2, at least {RDO_MIN_PRESET_STEPS}"
+        return (f"{RDO_PRESETS[self.preset]:g} x views^2, at least {RDO_MIN_PRESET_STEPS}; at least "
+                f"{RDO_CROSS_VIEW_MIN_STEPS[self.preset]} with the cross-view term of up to "
+                f"{RDO_CROSS_VIEW_MAX_VIEWS} views")
 
     def step_count(self, views: int) -> int:
         """The optimisation steps it takes with ``views`` context views."""

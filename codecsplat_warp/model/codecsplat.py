@@ -177,8 +177,8 @@ class CodecSplat(nn.Module):
             images: [V,3,H,W] in [0,1]; cameras: the V context cameras (both on the model's device).
             lam: rate-distortion trade-off in [16, 1024]; larger is more bytes and better quality.
             preset: ``"fast"`` (the amortised encoder alone), ``"medium"`` or ``"slow"``: optimisation steps that grow
-                with the square of the view count (:func:`.rdo.preset_steps`; 5 and 20 steps for 2 views, 80 and
-                320 for 8).
+                with the square of the view count (:func:`.rdo.preset_steps`; 25 and 160 steps for 2 views, whose
+                loss has a cross-view term, 80 and 320 for 8).
             steps: optimisation steps, overriding the preset's (0: none).
             time_budget: wall seconds the optimisation may take at most (None: no limit).
             seed: seed of the optimisation's quantisation noise (the same seed repeats a run on the CPU).
