@@ -49,8 +49,9 @@ FRAME_FORMATS = ("png", "gif", "mp4")
 RDO_PRESETS = {"fast": 0.0, "medium": 1.25, "slow": 5.0}
 """Encoder rate-distortion optimisation presets: optimisation steps per squared context view count (``fast``: none,
 the amortised encoder alone; see :func:`codecsplat_warp.model.rdo.preset_steps`). On the held-out scenes the target
-views' gain peaked after about 20 steps with 2 views and still rose after 300 with 8 (H100, docs/benchmarks.md):
-the useful step count grows with about the square of the view count."""
+views' gain peaked after about 20 steps with 2 views (with the context views alone in the loss) and still rose after
+300 with 8 (H100, docs/benchmarks.md): the useful step count grows with about the square of the view count. With the
+cross-view term of 2-view scenes the least counts are :data:`RDO_CROSS_VIEW_MIN_STEPS`."""
 
 RDO_MIN_PRESET_STEPS = 5
 """The fewest steps of a preset that optimises."""
