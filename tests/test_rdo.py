@@ -169,22 +169,21 @@ def test_the_cross_view_term_is_tuned_by_view_count_and_can_be_overridden():
 
 
 class _FixedRenders:
-    """A stand-in model whose render of view v gives the premultiplied colour colour[v] * alpha[v] and alpha[v]."""
+    """A stand-in model whose k-th render (cross_view_error renders view k k-th) gives the premultiplied colour
+    colour[k] * alpha[k] and alpha[k]."""
 
     def __init__(self, colour: torch.Tensor, alpha: torch.Tensor):
-        self.colour, self.alpha = colour, alpha
+        self.colour, self.alpha, self.calls = colour, alpha, 0
 
     def render(self, gaussians, cameras, depth_range=None):
-        v = self.views.pop(0)
+        v, self.calls = self.calls, self.calls + 1
         return {"rgb": self.colour[v:v + 1] * self.alpha[v:v + 1, None], "alpha": self.alpha[v:v + 1]}
 
 
 def _cross_error(colour: torch.Tensor, alpha: torch.Tensor, images: torch.Tensor, cameras) -> float:
-    model = _FixedRenders(colour, alpha)
-    model.views = list(range(images.shape[0]))
     gaussians = Gaussians(torch.zeros(4, 3), torch.tensor([[1.0, 0, 0, 0]]).repeat(4, 1), torch.ones(4, 3),
-                              torch.full((4,), 0.5), torch.zeros(4, 1, 3))
-    return float(rdo.cross_view_error(model, gaussians, cameras, images, (0.1, 10.0)))
+                          torch.full((4,), 0.5), torch.zeros(4, 1, 3))
+    return float(rdo.cross_view_error(_FixedRenders(colour, alpha), gaussians, cameras, images, (0.1, 10.0)))
 
 
 def test_the_cross_view_error_is_the_covered_colour_error_and_transparency_does_not_lower_it():
