@@ -75,6 +75,16 @@ class Gaussians:
         pieces = {f.name: getattr(self, f.name).chunk(parts) for f in fields(self)}
         return [Gaussians(**{name: chunks[i] for name, chunks in pieces.items()}) for i in range(parts)]
 
+    def view_ranges(self, views: int) -> torch.Tensor:
+        """``[views, 2]`` int64 on the Gaussians' device: the index range ``[first, end)`` of each of the ``views``
+        consecutive, equally long pieces of :meth:`split` (the pixel-aligned Gaussians of each view, view-major),
+        e.g. for :func:`~codecsplat_warp.ops.raster.rasterize`'s ``leave_out``. InputError unless ``views`` divides
+        the count."""
+        if views < 1 or len(self) % views:
+            raise InputError(f"cannot split {len(self)} Gaussians into {views} equal parts")
+        first = torch.arange(views, device=self.means.device) * (len(self) // views)
+        return torch.stack([first, first + len(self) // views], dim=1)
+
     def detach(self) -> "Gaussians":
         """A copy without autograd history."""
         return Gaussians(**{f.name: getattr(self, f.name).detach() for f in fields(self)})

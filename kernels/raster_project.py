@@ -344,6 +344,7 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         tiles_y: int,
         rounding: wp.float64,
         zero_culled: int,
+        leave_out: wp.array(dtype=wp.vec2i),
         first_gaussian: int,
         splats: wp.array2d(dtype=Any),
         radii: wp.array(dtype=wp.vec2i),
@@ -366,6 +367,8 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
             rounding: :data:`.raster_reach.POWER_ROUNDING` of the dtype (for the tiles a row reaches).
             zero_culled: 1 to write zero rows for culled Gaussians; 0 leaves them unwritten (the rasterizer reads
                 only visible rows, and ten scattered stores per culled Gaussian cost more than the projection).
+            leave_out: ``[B]`` int32 pairs: camera b culls the Gaussians ``leave_out[b][0] <= n < leave_out[b][1]``
+                (e.g. a view's own pixel-aligned Gaussians); ``[0]`` culls none.
             first_gaussian: the Gaussian of thread ``(b, 0)``.
             splats: output rows ``[B*N, 10]``; radii: ``[B*N]`` pixel radii (0 = culled);
             tile_counts: ``[B*N]`` int64 tiles reached (:func:`.raster_tiles.reached_tile_count`);
@@ -397,6 +400,9 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
             write_row(splats, i, wp.vector(zero, zero), wp.vector(zero, zero, zero), zero, wp.vector(zero, zero, zero), zero)
         radii[i] = wp.vec2i(0, 0)
         tile_counts[i] = wp.int64(0)
+        if leave_out.shape[0] > 0:
+            if n >= leave_out[b][0] and n < leave_out[b][1]:
+                return
         p = world_to_camera(viewmat, mean)
         if not (p[2] > near and p[2] < far and wp.isfinite(p[0]) and wp.isfinite(p[1])):
             return

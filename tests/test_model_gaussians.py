@@ -167,3 +167,15 @@ def test_gaussians_shape_checks():
         Gaussians(**{**ok, "quats": torch.zeros(3, 3)})
     with pytest.raises(InputError, match="sh"):
         Gaussians(**{**ok, "sh": torch.zeros(3, 5, 3)})
+
+
+def test_view_ranges_are_the_index_ranges_of_the_split_pieces():
+    n = 12
+    gaussians = Gaussians(torch.arange(3 * n, dtype=torch.float32).view(n, 3), torch.zeros(n, 4), torch.zeros(n, 3),
+                          torch.zeros(n), torch.zeros(n, 1, 3))
+    ranges = gaussians.view_ranges(3)
+    assert ranges.tolist() == [[0, 4], [4, 8], [8, 12]]
+    for (first, end), piece in zip(ranges.tolist(), gaussians.split(3)):
+        assert torch.equal(gaussians.means[first:end], piece.means)
+    with pytest.raises(InputError, match="5 equal parts"):
+        gaussians.view_ranges(5)

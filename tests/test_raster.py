@@ -384,6 +384,45 @@ def test_zero_quaternion_and_bad_arguments_raise_input_error():
         rasterize(*scene, 8, 8, near=0.0)
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_leave_out_renders_each_camera_as_if_its_range_were_absent(device):
+    """Camera b with ``leave_out[b] = (s, e)`` renders (and differentiates) like a call without Gaussians s..e-1:
+    ranges inside, reversed (empty) and past the end (clamped)."""
+    scene = make_scene(30, 19, 13, 3, sh_degree=1, device=device)
+    ranges = [(5, 20), (12, 9), (25, 99)]
+    leaves = [t.clone().requires_grad_() for t in scene[:5]]
+    g = torch.Generator().manual_seed(2)
+    weights = torch.rand(3, 13, 19, 4, generator=g, dtype=torch.float64).to(device)
+
+    def loss(rgb, alpha, b=slice(None)):
+        return (torch.cat([rgb, alpha], -1) * weights[b]).sum()
+
+    rgb, _, alpha, meta = rasterize(*leaves, *scene[5:], 19, 13, leave_out=torch.tensor(ranges, device=device))
+    grads = torch.autograd.grad(loss(rgb, alpha), leaves)
+    per_camera = []
+    total = 0.0
+    for b, (first, end) in enumerate(ranges):
+        keep = torch.ones(30, dtype=torch.bool, device=device)
+        keep[first:end] = False
+        one, _, one_alpha, one_meta = rasterize(*[t[keep] for t in leaves], scene[5][b:b + 1], scene[6][b:b + 1],
+                                                19, 13)  # fmt: skip
+        assert torch.equal(meta.radii[b][keep], one_meta.radii[0]) and not meta.radii[b][~keep].any()
+        per_camera.append(torch.cat([one, one_alpha], -1))
+        total = total + loss(one, one_alpha, slice(b, b + 1))
+    assert (torch.cat([rgb, alpha], -1) - torch.cat(per_camera)).abs().max() <= 1e-12
+    for name, ours, want in zip(("means", "quats", "scales", "opacities", "colors"), grads,
+                                torch.autograd.grad(total, leaves)):  # fmt: skip
+        assert relative_error(ours, want) <= 1e-10, name
+
+
+def test_leave_out_of_the_wrong_shape_or_dtype_is_an_input_error():
+    scene = make_scene(4, 8, 8, 2)
+    with pytest.raises(InputError, match="leave_out"):
+        rasterize(*scene, 8, 8, leave_out=torch.zeros(1, 2, dtype=torch.int64))
+    with pytest.raises(InputError, match="leave_out"):
+        rasterize(*scene, 8, 8, leave_out=torch.zeros(2, 2))
+
+
 def test_memory_budget_raises_before_allocating():
     """16 bytes per intersection with this scene's 32-bit sort keys: a budget of exactly that renders."""
     scene = make_scene(30, 32, 32)
@@ -400,8 +439,8 @@ def test_culled_rows_are_never_read_and_zeroed_only_for_projection(monkeypatch):
 
     make_rows = raster_ops._rows_and_cameras
 
-    def poisoned_rows(means, num_cameras):
-        rows, cameras = make_rows(means, num_cameras)
+    def poisoned_rows(means, num_cameras, leave_out):
+        rows, cameras = make_rows(means, num_cameras, leave_out)
         rows.fill_(float("nan"))
         return rows, cameras
 
@@ -432,8 +471,9 @@ def test_projection_lists_each_visible_row_once(device):
     inputs = [t.to(device) for t in (means, quats, scales, opacities, colors, viewmats, Ks.expand(2, 3, 3))]
     checked = raster_ops._prepare(*inputs, 24, 20, 0.01, 1e10, None, "classic", None, True, 16, 1e-4)
     means, quats, scales, opacities, colors, viewmats, Ks, background, settings = checked
-    outputs, saved = raster_ops._render(means, quats, scales, opacities, colors, background, viewmats, Ks, settings,
-                                        raster_ops.DEFAULT_MAX_INTERSECTION_BYTES)  # fmt: skip
+    none_left_out = raster_ops._leave_out_ranges(None, viewmats, means)
+    outputs, saved = raster_ops._render(means, quats, scales, opacities, colors, background, viewmats, Ks,
+                                        none_left_out, settings, raster_ops.DEFAULT_MAX_INTERSECTION_BYTES)
     visible = outputs[3].reshape(-1, 2).any(dim=-1).nonzero().flatten().cpu()
     listed = saved.visible.rows[: int(saved.visible.count)].cpu().to(torch.int64)
     assert 100 < len(visible) < 600 and (visible < 300).any() and (visible >= 300).any()
@@ -462,8 +502,9 @@ def test_projection_folds_the_visible_depth_range(device, monkeypatch):
     inputs = [t.to(device) for t in (means, quats, scales, opacities, colors, viewmats, Ks)]
     checked = raster_ops._prepare(*inputs, 40, 30, 0.01, 1e10, None, "classic", None, True, 16, 1e-4)
     means, quats, scales, opacities, colors, viewmats, Ks, background, settings = checked
-    outputs, saved = raster_ops._render(means, quats, scales, opacities, colors, background, viewmats, Ks, settings,
-                                        raster_ops.DEFAULT_MAX_INTERSECTION_BYTES)  # fmt: skip
+    none_left_out = raster_ops._leave_out_ranges(None, viewmats, means)
+    outputs, saved = raster_ops._render(means, quats, scales, opacities, colors, background, viewmats, Ks,
+                                        none_left_out, settings, raster_ops.DEFAULT_MAX_INTERSECTION_BYTES)
     visible = outputs[3].reshape(-1, 2).any(dim=-1)
     depths = saved.splats[visible, 9].float().cpu()
     assert 1000 < len(depths) < 3000
@@ -604,7 +645,8 @@ def test_projection_zeroes_every_tile_range(device, monkeypatch):
     means, quats, scales, opacities, colors, viewmats, Ks, background, settings = raster_ops._prepare(
         *inputs, 24, 20, 0.01, 1e10, None, "classic", None, True, 1, 1e-4
     )
-    checked = (means, quats, scales, opacities, colors, background, viewmats, Ks, settings,
+    checked = (means, quats, scales, opacities, colors, background, viewmats, Ks,
+               raster_ops._leave_out_ranges(None, viewmats, means), settings,
                raster_ops.DEFAULT_MAX_INTERSECTION_BYTES)  # fmt: skip
     clean_outputs, clean = raster_ops._render(*checked)
     project = raster_ops._project

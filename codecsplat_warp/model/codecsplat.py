@@ -265,10 +265,13 @@ class CodecSplat(nn.Module):
         return self.decode_scene(data, device).gaussians
 
     def render(self, gaussians: Gaussians, cameras: Cameras, background: torch.Tensor | None = None,
-               render_depth: bool = False, depth_range: tuple[float, float] | None = None) -> dict:
+               render_depth: bool = False, depth_range: tuple[float, float] | None = None,
+               leave_out: torch.Tensor | None = None) -> dict:
         """Rasterize ``gaussians`` into B target ``cameras`` (float32, autocast off), culling outside
         ``depth_range`` (default :func:`render_depth_range` of the cameras, which reads their bounds on the host:
-        loops that render into the same cameras pass it once).
+        loops that render into the same cameras pass it once). ``leave_out`` [B,2]: camera b renders without the
+        Gaussians ``leave_out[b,0] <= n < leave_out[b,1]`` (:func:`~codecsplat_warp.ops.raster.rasterize`; e.g. a
+        view predicted from the other views' Gaussians, :meth:`Gaussians.view_ranges`).
 
         Returns:
             dict with ``rgb`` [B,3,H,W], ``alpha`` [B,H,W], ``depth`` [B,H,W] (None unless ``render_depth``)
@@ -282,7 +285,7 @@ class CodecSplat(nn.Module):
                 gaussians.means.float(), gaussians.quats.float(), gaussians.scales.float(),
                 gaussians.opacities.float(), gaussians.sh.float(), cams.w2c, cams.K, cams.width, cams.height,
                 near=near, far=far, background=background, mode="classic", sh_degree=gaussians.sh_degree,
-                render_depth=render_depth,
+                render_depth=render_depth, leave_out=leave_out,
             )
         return {"rgb": rgb.permute(0, 3, 1, 2), "alpha": alpha[..., 0],
                 "depth": depth[..., 0] if depth is not None else None, "meta": meta}

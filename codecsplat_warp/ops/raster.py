@@ -101,6 +101,7 @@ def rasterize(
     tile_size: int = 16,
     max_intersection_bytes: int = DEFAULT_MAX_INTERSECTION_BYTES,
     min_transmittance: float = DEFAULT_MIN_TRANSMITTANCE,
+    leave_out: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor, RasterMeta]:
     """Render N 3D Gaussians into B pinhole cameras (differentiable, gsplat-compatible conventions).
 
@@ -128,6 +129,9 @@ def rasterize(
             values skip more of the hidden Gaussians (faster, a larger error against an exact render);
             0 composites every Gaussian until ``T`` underflows, where the backward, which rebuilds ``T`` by
             division from the final ``T``, loses accuracy behind nearly opaque stacks.
+        leave_out: ``[B,2]`` integer: camera b renders without the Gaussians ``leave_out[b,0] <= n <
+            leave_out[b,1]`` (an empty range leaves out none), e.g. each view predicted from the other views'
+            pixel-aligned Gaussians in one call; None: every camera renders every Gaussian.
 
     Returns:
         ``(rgb [B,H,W,3], depth [B,H,W,1] or None, alpha [B,H,W,1], meta)`` in the dtype of ``means``
@@ -142,12 +146,14 @@ def rasterize(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, far, background, mode,
         sh_degree, render_depth, tile_size, min_transmittance,
     )  # fmt: skip
+    leave_out = _leave_out_ranges(leave_out, viewmats, means)
     if means.shape[0] == 0 or viewmats.shape[0] == 0:
         for name, tensor in (("viewmats", viewmats), ("Ks", Ks), ("background", background)):
             if tensor is not None:
                 check_finite(name, tensor)
         return _empty_render(means, viewmats, background, settings)
-    inputs = (means, quats, scales, opacities, colors, background, viewmats, Ks, settings, max_intersection_bytes)
+    inputs = (means, quats, scales, opacities, colors, background, viewmats, Ks, leave_out, settings,
+              max_intersection_bytes)
     if torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in inputs[:6]):
         color, depth, alpha, radii, count = _Rasterize.apply(*inputs)
     else:  # nothing to differentiate: no autograd bookkeeping
@@ -347,20 +353,37 @@ class _Cameras(NamedTuple):
 
     Attributes:
         viewmats: ``[B,4,4]`` camera-relative world-to-camera; Ks: ``[B,3,3]`` pixels; origin: ``[3]`` the world
-        translation (world units; 0 for float64 Gaussians).
+        translation (world units; 0 for float64 Gaussians); leave_out: ``[B,2]`` int32 Gaussian ranges the cameras
+        cull (:func:`rasterize`), or ``[0,2]`` for none.
     """
 
     viewmats: torch.Tensor
     Ks: torch.Tensor
     origin: torch.Tensor
+    leave_out: torch.Tensor
 
 
-def _rows_and_cameras(means: torch.Tensor, num_cameras: int) -> tuple[torch.Tensor, _Cameras]:
-    """Uninitialised projected rows ``[B*N, 10]`` and prepared cameras (:class:`_Cameras`) in the dtype of ``means``
-    ``[N,3]`` (separate allocations: fewer host operations than views of one buffer)."""
+def _rows_and_cameras(means: torch.Tensor, num_cameras: int, leave_out: torch.Tensor
+                      ) -> tuple[torch.Tensor, _Cameras]:  # fmt: skip
+    """Uninitialised projected rows ``[B*N, 10]`` and prepared cameras (:class:`_Cameras`, with ``leave_out``) in
+    the dtype of ``means`` ``[N,3]`` (separate allocations: fewer host operations than views of one buffer)."""
     B = num_cameras
     rows = means.new_empty(B * means.shape[0], raster_row.ROW_WIDTH)
-    return rows, _Cameras(means.new_empty(B, 4, 4), means.new_empty(B, 3, 3), means.new_empty(3))
+    return rows, _Cameras(means.new_empty(B, 4, 4), means.new_empty(B, 3, 3), means.new_empty(3), leave_out)
+
+
+def _leave_out_ranges(leave_out: torch.Tensor | None, viewmats: torch.Tensor, means: torch.Tensor) -> torch.Tensor:
+    """:func:`rasterize`'s ``leave_out`` checked (``[B,2]`` integer, on the Gaussians' device) as int32 (other
+    integer dtypes clamped to ``[-1, N]`` first; int32 is passed as it is, without a device op), or the zero-length
+    ``[0,2]`` int32 array that means none."""
+    if leave_out is None:
+        return _zero_length(means.device, torch.int32, (2,))
+    leave_out = check_tensor("leave_out", leave_out, (viewmats.shape[0], 2),
+                             (torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8))  # fmt: skip
+    common_device(means=means, leave_out=leave_out)
+    if leave_out.dtype == torch.int32:
+        return leave_out
+    return leave_out.clamp(-1, means.shape[0]).to(torch.int32)
 
 
 class _Visible(NamedTuple):
@@ -442,6 +465,7 @@ def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, setting
         settings.tiles_y,
         _POWER_ROUNDING[dtype],
         int(zero_culled),
+        vectors(cameras.leave_out),
     ]
     outputs = [splats, vectors(radii), tile_counts, flags, visible.count, visible.rows, vectors(ranges)]
     kernel = raster_project.projection_kernels(settings.sh_degree >= 0).project
@@ -516,7 +540,7 @@ class _ProjectGaussians(torch.autograd.Function):
         tile_counts, flags = means.new_empty(B * N + raster_tiles.NUM_FLAGS, dtype=torch.int64).split_with_sizes(
             (B * N, raster_tiles.NUM_FLAGS)
         )
-        splats, cameras = _rows_and_cameras(means, B)
+        splats, cameras = _rows_and_cameras(means, B, _zero_length(means.device, torch.int32, (2,)))
         visible = _visible_list(means, B * N)
         with warp_scope(means.device) as wdev:
             _prepare_cameras(viewmats, Ks, _absent(means, 3), cameras, flags, visible, wdev)
@@ -742,7 +766,7 @@ class _Saved(NamedTuple):
     composite_state: _TileState | None
 
 
-def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, settings: _Settings,
+def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, leave_out, settings: _Settings,
             max_intersection_bytes: int) -> tuple[tuple, _Saved]:  # fmt: skip
     """The forward render on checked inputs: ``((rgb [B,H,W,3], depth [B,H,W,1] or None, alpha [B,H,W,1],
     radii [B,N,2] int32, intersection count), what the backward needs)``."""
@@ -752,7 +776,7 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, s
     colors_or_black = _absent(means, 3) if background is None else background
     ints = means.new_empty(2 * B * N + raster_tiles.NUM_FLAGS, dtype=torch.int64)
     tile_counts, offsets, flags = ints.split_with_sizes((B * N, B * N, raster_tiles.NUM_FLAGS))
-    splats, cameras = _rows_and_cameras(means, B)
+    splats, cameras = _rows_and_cameras(means, B, leave_out)
     visible = _visible_list(means, B * N)
     # the projection zeroes the ranges
     ranges = tile_counts.new_empty(B * settings.tiles_x * settings.tiles_y, 2, dtype=torch.int32)
@@ -784,10 +808,10 @@ class _Rasterize(torch.autograd.Function):
     (:class:`_Saved`) are kept on ``ctx`` directly."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, colors, background, viewmats, Ks, settings: _Settings,
-                max_intersection_bytes: int):  # fmt: skip
-        outputs, saved = _render(means, quats, scales, opacities, colors, background, viewmats, Ks, settings,
-                                 max_intersection_bytes)  # fmt: skip
+    def forward(ctx, means, quats, scales, opacities, colors, background, viewmats, Ks, leave_out,
+                settings: _Settings, max_intersection_bytes: int):  # fmt: skip
+        outputs, saved = _render(means, quats, scales, opacities, colors, background, viewmats, Ks, leave_out,
+                                 settings, max_intersection_bytes)  # fmt: skip
         ctx.settings, ctx.colors_shape, ctx.saved = settings, colors.shape, saved._replace(colors_or_black=None)
         ctx.save_for_backward(means, quats, scales, opacities, colors, saved.colors_or_black)
         ctx.mark_non_differentiable(outputs[3])
@@ -814,7 +838,7 @@ class _Rasterize(torch.autograd.Function):
         if ctx.needs_input_grad[5] and grad_color is not None:
             B, H, W = grad_color.shape[:3]
             grad_background = (grad_color * saved.state[:, :1].view(B, H, W, 1)).sum(dim=(1, 2))
-        return (*grads, grad_background, None, None, None, None)
+        return (*grads, grad_background, None, None, None, None, None)
 
 
 def _composite_outputs(num_cameras: int, settings: _Settings, splats: torch.Tensor) -> tuple:
