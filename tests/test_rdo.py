@@ -14,7 +14,6 @@ from codecsplat_warp.checks import validation
 from codecsplat_warp.codec import parse_bitstream
 from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
 from codecsplat_warp.errors import InputError
-from codecsplat_warp.gaussians import Gaussians
 from codecsplat_warp.model import rdo
 from codecsplat_warp.model.codecsplat import model_id
 
@@ -168,36 +167,45 @@ def test_the_cross_view_term_is_tuned_by_view_count_and_can_be_overridden():
     assert rdo.rdo_config("slow", views=2, cross_view_weight=0.0).cross_view_weight == 0.0
 
 
-class _FixedRenders:
-    """A stand-in model whose k-th render (cross_view_error renders view k k-th) gives the premultiplied colour
-    colour[k] * alpha[k] and alpha[k]."""
-
-    def __init__(self, colour: torch.Tensor, alpha: torch.Tensor):
-        self.colour, self.alpha, self.calls = colour, alpha, 0
-
-    def render(self, gaussians, cameras, depth_range=None):
-        v, self.calls = self.calls, self.calls + 1
-        return {"rgb": self.colour[v:v + 1] * self.alpha[v:v + 1, None], "alpha": self.alpha[v:v + 1]}
-
-
-def _cross_error(colour: torch.Tensor, alpha: torch.Tensor, images: torch.Tensor, cameras) -> float:
-    gaussians = Gaussians(torch.zeros(4, 3), torch.tensor([[1.0, 0, 0, 0]]).repeat(4, 1), torch.ones(4, 3),
-                          torch.full((4,), 0.5), torch.zeros(4, 1, 3))
-    return float(rdo.cross_view_error(_FixedRenders(colour, alpha), gaussians, cameras, images, (0.1, 10.0)))
+def _cross_error(colour: torch.Tensor, alpha: torch.Tensor, images: torch.Tensor) -> float:
+    """The cross-view error of renders of colour ``colour`` [V,3,H,W] at coverage ``alpha`` [V,H,W]."""
+    return float(rdo.cross_view_error(colour * alpha[:, None], alpha, images))
 
 
 def test_the_cross_view_error_is_the_covered_colour_error_and_transparency_does_not_lower_it():
-    images, cameras = _scene(5)
+    images, _ = _scene(5)
     gen = torch.Generator().manual_seed(0)
     colour = torch.rand(images.shape, generator=gen)
     alpha = 0.2 + 0.7 * torch.rand(images[:, 0].shape, generator=gen)
-    error = _cross_error(colour, alpha, images, cameras)
+    error = _cross_error(colour, alpha, images)
     expected = torch.stack([(alpha[v] * (colour[v] - images[v]).square()).sum() / (3 * alpha[v].sum())
                             for v in range(2)]).mean()
     assert error == pytest.approx(float(expected), rel=1e-5)
-    assert _cross_error(colour, alpha * 0.25, images, cameras) == pytest.approx(error, rel=1e-5), \
+    assert _cross_error(colour, alpha * 0.25, images) == pytest.approx(error, rel=1e-5), \
         "fainter Gaussians of the same colour must not predict the view better"
-    assert _cross_error(images, alpha, images, cameras) == pytest.approx(0.0, abs=1e-10)
+    assert _cross_error(images, alpha, images) == pytest.approx(0.0, abs=1e-10)
+
+
+def test_the_cross_view_renders_come_from_the_other_views_gaussians_in_the_same_call(monkeypatch):
+    model = tiny_coding_model(5)
+    images, cameras = _scene(13)
+    start = model.codec.compress(model(images, cameras)["F_c"].detach(), LAM, reconstruct=True)
+    config = rdo.RDOConfig(steps=1, cross_view_weight=1.0)
+    target = rdo.rdo_target(model, images, cameras, LAM, start, config)
+    with torch.no_grad():
+        gaussians = model.decode_feature(start.feature, cameras)[2]
+        whole = model.render(gaussians, cameras, depth_range=target.depth_range)["rgb"]
+        pieces = gaussians.split(2)
+        others = [model.render(pieces[1 - v], cameras.select([v]), depth_range=target.depth_range) for v in range(2)]
+        calls = []
+        render = model.render
+        monkeypatch.setattr(model, "render", lambda *a, **k: calls.append(1) or render(*a, **k))
+        rgb, (cross, alpha) = rdo.render_context_views(model, gaussians, target, cross_views=True)
+    assert len(calls) == 1
+    assert (rgb - whole).abs().max() < 1e-5
+    assert (cross - torch.cat([o["rgb"] for o in others])).abs().max() < 1e-5
+    assert (alpha - torch.cat([o["alpha"] for o in others])).abs().max() < 1e-5
+    assert float(alpha.mean()) > 0.05, "the other view must cover some of each view"
 
 
 def test_the_optional_terms_enter_the_loss_only_when_weighted():

@@ -44,8 +44,8 @@ from ..measure import format_table, machine_name, synchronize
 from ..metrics import LPIPS
 from ..metrics.image import ImageMetrics
 from ..model import pretrained
-from ..model.rdo import (RDOConfig, decoder_fixed, latent_optimiser, other_views_gaussians, psnr_of_mse, rdo_config,
-                         rdo_step, rdo_target, start_variables, step_decoder)
+from ..model.rdo import (RDOConfig, decoder_fixed, latent_optimiser, psnr_of_mse, rdo_config, rdo_step, rdo_target,
+                         start_variables, step_decoder)
 from .options import RDO_PROFILE_PARTS
 
 METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
@@ -260,12 +260,10 @@ def _trajectory_hook(model, sample: Sample, metrics: ImageMetrics, checks: list[
         gaussians = model.decode_feature(compressed.feature, cameras)[2]
         rgb = model.render(gaussians, sample.target_cameras)["rgb"]
         scores = _target_scores(metrics, rgb, sample)
-        cross = []
-        for v, others in enumerate(other_views_gaussians(gaussians, cameras.num_views)):
-            own = model.render(others, cameras.select([v]))["rgb"]
-            cross.append(float((own.clamp(0, 1) - images[v:v + 1]).square().mean()))
+        others = model.render(gaussians, cameras, leave_out=gaussians.view_ranges(cameras.num_views))["rgb"]
+        cross = (others.clamp(0, 1) - images).square().mean(dim=(1, 2, 3))
         checks.append({**vars(check), **{f"target_{k}": v for k, v in scores.items()},
-                       "cross_psnr": psnr_of_mse(statistics.fmean(cross))})
+                       "cross_psnr": psnr_of_mse(float(cross.mean()))})
 
     return hook
 

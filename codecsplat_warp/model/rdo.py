@@ -459,7 +459,7 @@ def rdo_loss(model, variables: list[torch.Tensor], target: RDOTarget, config: RD
             annealing = None if temperature is None else torch.full((), temperature, device=images.device)
             bits, s, gaussians = decode_variables(model, variables, target, config.variable, generator,
                                                   temperature=annealing)
-    rgb = model.render(gaussians, cameras, depth_range=target.depth_range)["rgb"]
+    rgb, cross = render_context_views(model, gaussians, target, config.cross_view_weight > 0)
     with record_function("loss"):
         parts = {"mse": F.mse_loss(rgb, images), "bpp": bits.float() / images[:, 0].numel()}
     distortion = parts["mse"]
@@ -469,7 +469,7 @@ def rdo_loss(model, variables: list[torch.Tensor], target: RDOTarget, config: RD
             parts["perceptual"] = target.perceptual.distance(units, target.perceptual_target).mean()
         distortion = distortion + config.perceptual_weight * parts["perceptual"]
     if config.cross_view_weight > 0:
-        parts["cross"] = cross_view_error(model, gaussians, cameras, images, target.depth_range)
+        parts["cross"] = cross_view_error(*cross, images)
         distortion = distortion + config.cross_view_weight * parts["cross"]
     if config.depth_weight > 0 and target.s_start is not None:
         parts["depth"] = (s.float() - target.s_start).abs().mean()
@@ -482,33 +482,42 @@ def rdo_loss(model, variables: list[torch.Tensor], target: RDOTarget, config: RD
     return loss, parts
 
 
-def cross_view_error(model, gaussians: Gaussians, cameras: Cameras, images: torch.Tensor,
-                     depth_range: tuple[float, float]) -> torch.Tensor:
+def render_context_views(model, gaussians: Gaussians, target: RDOTarget, cross_views: bool
+                         ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor] | None]:  # fmt: skip
+    """The decoded Gaussians rendered into the context cameras, rgb [V,3,H,W]; with ``cross_views`` also each
+    context view rendered from the other views' Gaussians alone (rgb [V,3,H,W], premultiplied, and alpha [V,H,W];
+    else None), in the same rasterizer call (its ``leave_out``). ``gaussians`` are the decoder's V*H*W
+    pixel-aligned Gaussians, view-major."""
+    cameras = target.cameras
+    if not cross_views:
+        return model.render(gaussians, cameras, depth_range=target.depth_range)["rgb"], None
+    V = cameras.num_views
+    twice, leave_out = cameras.memoized("rdo_cross_views", lambda: _cross_view_cameras(gaussians, cameras))
+    out = model.render(gaussians, twice, depth_range=target.depth_range, leave_out=leave_out)
+    return out["rgb"][:V], (out["rgb"][V:], out["alpha"][V:])
+
+
+def _cross_view_cameras(gaussians: Gaussians, cameras: Cameras) -> tuple[Cameras, torch.Tensor]:
+    """The context cameras twice and the ``leave_out`` ranges [2V,2] that make the second V render each view
+    without its own Gaussians (the first V render all)."""
+    own = gaussians.view_ranges(cameras.num_views).to(torch.int32)
+    return Cameras.concat([cameras, cameras]), torch.cat([torch.zeros_like(own), own])
+
+
+def cross_view_error(rgb: torch.Tensor, alpha: torch.Tensor, images: torch.Tensor) -> torch.Tensor:
     """How badly the other views' Gaussians predict each context view: 0-dim, the mean over views.
 
-    View v is rendered from the Gaussians of every other view alone; where they cover it, their colour divided by
-    their alpha (at least :data:`CROSS_VIEW_ALPHA_FLOOR`) is compared with the photograph, each pixel's squared
-    error weighted by that alpha (detached) and the weights normalised. What the other views leave uncovered costs
-    nothing, and making their Gaussians transparent does not lower the error (rendering them over the photograph
-    instead rewarded transparency: 2 views, 17.05 dB against 17.33 without the term). ``gaussians`` are the
-    decoder's V*H*W pixel-aligned Gaussians, view-major; ``images`` [V,3,H,W]."""
-    errors = []
-    for v, others in enumerate(other_views_gaussians(gaussians, cameras.num_views)):
-        out = model.render(others, cameras.select([v]), depth_range=depth_range)
-        alpha = out["alpha"][:, None]
-        weight = alpha.detach()
-        squared = (out["rgb"] / alpha.clamp_min(CROSS_VIEW_ALPHA_FLOOR) - images[v:v + 1]).square()
-        errors.append((weight * squared).sum() / (squared.shape[1] * weight.sum()).clamp_min(1e-6))
-    return torch.stack(errors).mean()
-
-
-def other_views_gaussians(gaussians: Gaussians, views: int) -> list[Gaussians]:
-    """For each of ``views`` views, the Gaussians of all the other views: ``gaussians`` are pixel-aligned and
-    view-major (``views`` equal pieces, as the decoder makes them)."""
-    pieces = gaussians.split(views)
-    names = [f.name for f in fields(Gaussians)]
-    return [Gaussians(**{name: torch.cat([getattr(p, name) for u, p in enumerate(pieces) if u != v])
-                         for name in names}) for v in range(views)]
+    ``rgb`` [V,3,H,W] (premultiplied) and ``alpha`` [V,H,W] render view v from the Gaussians of every other view
+    alone (:func:`render_context_views`); where they cover it, their colour divided by their alpha (at least
+    :data:`CROSS_VIEW_ALPHA_FLOOR`) is compared with the photograph ``images`` [V,3,H,W], each pixel's squared
+    error weighted by that alpha (detached) and the weights normalised per view. What the other views leave
+    uncovered costs nothing, and making their Gaussians transparent does not lower the error (rendering them over
+    the photograph instead rewarded transparency: 2 views, 17.05 dB against 17.33 without the term)."""
+    alpha = alpha[:, None]
+    weight = alpha.detach()
+    squared = (rgb / alpha.clamp_min(CROSS_VIEW_ALPHA_FLOOR) - images).square()
+    per_view = (weight * squared).sum(dim=(1, 2, 3)) / (squared.shape[1] * weight.sum(dim=(1, 2, 3))).clamp_min(1e-6)
+    return per_view.mean()
 
 
 def psnr_of_mse(mse: float) -> float:
