@@ -46,7 +46,7 @@ import contextlib
 import math
 import time
 import warnings
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from typing import Callable, Iterator
 
 import torch
