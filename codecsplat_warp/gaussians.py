@@ -70,8 +70,7 @@ class Gaussians:
     def split(self, parts: int) -> "list[Gaussians]":
         """``parts`` consecutive, equally long pieces (e.g. the Gaussians of each scene of a training batch,
         whose views are stacked view-major). InputError unless ``parts`` divides the count."""
-        if parts < 1 or len(self) % parts:
-            raise InputError(f"cannot split {len(self)} Gaussians into {parts} equal parts")
+        self._piece_length(parts)
         pieces = {f.name: getattr(self, f.name).chunk(parts) for f in fields(self)}
         return [Gaussians(**{name: chunks[i] for name, chunks in pieces.items()}) for i in range(parts)]
 
@@ -80,10 +79,15 @@ class Gaussians:
         consecutive, equally long pieces of :meth:`split` (the pixel-aligned Gaussians of each view, view-major),
         e.g. for :func:`~codecsplat_warp.ops.raster.rasterize`'s ``leave_out``. InputError unless ``views`` divides
         the count."""
-        if views < 1 or len(self) % views:
-            raise InputError(f"cannot split {len(self)} Gaussians into {views} equal parts")
-        first = torch.arange(views, device=self.means.device) * (len(self) // views)
-        return torch.stack([first, first + len(self) // views], dim=1)
+        length = self._piece_length(views)
+        first = torch.arange(views, device=self.means.device) * length
+        return torch.stack([first, first + length], dim=1)
+
+    def _piece_length(self, parts: int) -> int:
+        """The length of each of ``parts`` equal consecutive pieces; InputError unless ``parts`` divides the count."""
+        if parts < 1 or len(self) % parts:
+            raise InputError(f"cannot split {len(self)} Gaussians into {parts} equal parts")
+        return len(self) // parts
 
     def detach(self) -> "Gaussians":
         """A copy without autograd history."""

@@ -540,7 +540,7 @@ class _ProjectGaussians(torch.autograd.Function):
         tile_counts, flags = means.new_empty(B * N + raster_tiles.NUM_FLAGS, dtype=torch.int64).split_with_sizes(
             (B * N, raster_tiles.NUM_FLAGS)
         )
-        splats, cameras = _rows_and_cameras(means, B, _zero_length(means.device, torch.int32, (2,)))
+        splats, cameras = _rows_and_cameras(means, B, _leave_out_ranges(None, viewmats, means))
         visible = _visible_list(means, B * N)
         with warp_scope(means.device) as wdev:
             _prepare_cameras(viewmats, Ks, _absent(means, 3), cameras, flags, visible, wdev)
