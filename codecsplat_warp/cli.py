@@ -118,6 +118,12 @@ def build_parser() -> argparse.ArgumentParser:
                         help="stop the optimisation after this many seconds, keeping the best bitstream so far; alone, "
                         "it optimises until the budget is spent (default: no limit)")
     encode.add_argument("--seed", type=int, default=0, help="seed of the optimisation's quantisation noise (default 0)")
+    encode.add_argument("--perceptual", type=float, default=0.0, metavar="WEIGHT",
+                        help="weight of an LPIPS-VGG term in the optimisation's loss, e.g. 0.02: sharper, perceptually "
+                        "closer renders for more bytes and a little PSNR (needs optimisation steps and the LPIPS "
+                        "weights; see docs/cli.md) (default 0: off)")
+    encode.add_argument("--lpips-weights", help="folder with lpips_vgg.safetensors, for --perceptual (default "
+                        "$CODECSPLAT_LPIPS_WEIGHTS)")
 
     decode = sub.add_parser("decode", help="scene bitstream -> 3DGS PLY file")
     _model_options(decode)
@@ -171,6 +177,9 @@ def build_parser() -> argparse.ArgumentParser:
                           "lambda, optimised for that many steps (default: none)")
     evaluate.add_argument("--rdo-seed", type=int, default=0, help="seed of the RDO rows' quantisation noise "
                           "(default %(default)s)")
+    evaluate.add_argument("--rdo-perceptual", help="comma list of LPIPS-VGG weights (> 0): each adds the rows of every "
+                          "RDO preset and step count once more, optimised with that perceptual term in the loss "
+                          "(needs the LPIPS weights) (default: none)")
     evaluate.add_argument("--png-sh-clusters", type=int, default=8192, help="K_SH, colour clusters of the PNG baseline (default %(default)s)")
     evaluate.add_argument("--kmeans-iterations", type=int, default=10, help="Lloyd steps of the PNG baseline's k-means (default %(default)s)")
     evaluate.add_argument("--size", help="WIDTHxHEIGHT instead of the protocol's image size (its depth range stays)")
@@ -356,6 +365,7 @@ def _cmd_encode(args) -> int:
     lam = check_lambda(args.lam)
     size = _size(args.size) if args.size else None
     preset = args.preset or default_preset(device)
+    perceptual = _perceptual_network(args.perceptual, args.lpips_weights, preset, args.steps, args.time_budget, device)
     start = time.perf_counter()
     with _progress(args, ["scene", "model", "encode", "write"]) as advance:
         scene = load_scene(args.scene)
@@ -369,16 +379,18 @@ def _cmd_encode(args) -> int:
         cameras = scene.cameras.to(device, torch.float32)
         load_s = time.perf_counter() - start
         advance()
+        rdo_settings = {"perceptual_weight": args.perceptual} if perceptual is not None else None
         encoded, encode_s = timed(lambda: model.encode_scene(images, cameras, lam, preset=preset, steps=args.steps,
                                                              time_budget=args.time_budget, seed=args.seed,
-                                                             progress=not args.json), device)
+                                                             progress=not args.json, rdo_settings=rdo_settings,
+                                                             perceptual=perceptual), device)
         advance()
         write_bytes(args.out, encoded.data)
         advance()
     parts = bytes_report(encoded.data)
     rdo = encoded.rdo.to_dict() if encoded.rdo is not None else None
     result = {"output": args.out, "scene": str(args.scene), "views": views, "width": width, "height": height,
-              "lambda": lam, "preset": preset, "rdo": rdo, "bytes": parts,
+              "lambda": lam, "preset": preset, "perceptual": args.perceptual, "rdo": rdo, "bytes": parts,
               "bits_per_pixel": 8 * parts["total"] / (len(views) * width * height),
               "seconds": {"load": load_s, "encode": encode_s}}
     lines = [f"encoded {len(views)} views {views} of {args.scene} at {width}x{height}, λ={lam:g} -> {args.out}",
@@ -388,12 +400,31 @@ def _cmd_encode(args) -> int:
         stopped = {"steps": "", "time": " (time budget spent)", "interrupted": " (stopped by Ctrl-C)",
                    "non-finite": " (stopped: the loss was no longer finite)"}[rdo["stopped"]]
         label = preset if args.steps is None else f"--steps {args.steps}"
+        label += f", LPIPS-VGG {args.perceptual:g}" if perceptual is not None else ""
         lines.append(f"RDO ({label}): {rdo['steps']} steps in {rdo['seconds']:.2f} s"
                      f"{stopped}; kept step {rdo['best_step']}: context views {first['psnr']:.2f} -> "
                      f"{kept['psnr']:.2f} dB")
     lines.append(f"load + preprocess {load_s:.2f} s, encode {encode_s:.2f} s on {device}")
     _emit(args, result, lines)
     return EXIT_OK
+
+
+def _perceptual_network(weight: float, lpips_weights: str | None, preset: str, steps: int | None,
+                        time_budget: float | None, device):
+    """The LPIPS-VGG network of ``codecsplat encode --perceptual`` on ``device`` (None for weight 0), before any
+    other work. UsageError for a weight < 0 or one without optimisation steps (``fast`` and no ``--steps`` or
+    budget); InputError without the LPIPS weights."""
+    from .metrics.lpips import LPIPS
+    from .model.rdo import rdo_config
+
+    if not (math.isfinite(weight) and weight >= 0):
+        raise UsageError(f"--perceptual must be a weight >= 0, got {weight:g}")
+    if weight == 0:
+        return None
+    if not rdo_config(preset, steps, time_budget).optimises:
+        raise UsageError("--perceptual weighs a term of the encoder's optimisation: give --preset medium or slow, "
+                         "--steps N or --time-budget SECONDS")
+    return LPIPS("vgg", lpips_weights).to(device)
 
 
 def _check_rdo_arguments(steps: int | None, time_budget: float | None) -> None:
@@ -550,7 +581,8 @@ def _cmd_eval(args) -> int:
                         webp_qualities=tuple(_number_list(int, args.webp_qualities, "--webp-qualities")),
                         jpeg_qualities=tuple(_number_list(int, args.jpeg_qualities, "--jpeg-qualities")),
                         rdo_presets=tuple(name.strip() for name in (args.rdo_presets or "").split(",") if name.strip()),
-                        rdo_steps=tuple(_number_list(int, args.rdo_steps or "", "--rdo-steps")), rdo_seed=args.rdo_seed)
+                        rdo_steps=tuple(_number_list(int, args.rdo_steps or "", "--rdo-steps")), rdo_seed=args.rdo_seed,
+                        rdo_perceptual=tuple(_number_list(float, args.rdo_perceptual or "", "--rdo-perceptual")))
     result = evaluate_sharded(config, checkpoint, device, workers, threads=args.threads)
     lines = [f"{len(result['scenes'])} scene(s), {args.protocol} protocol, {result['machine']}",
              "", "Table 1", result["tables"]["table1"], "", "Table 2 (seconds)", result["tables"]["table2"], "",

@@ -22,6 +22,7 @@ from codecsplat_warp.metrics import WEIGHTS_ENV, psnr
 from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.model.pretrained import save_pretrained
 from codecsplat_warp.nn.config import get_preset
+from conftest import LPIPS_WEIGHTS, needs_lpips
 
 WIDTH, HEIGHT = 48, 32
 
@@ -256,6 +257,33 @@ def test_ctrl_c_during_rdo_writes_the_best_bitstream_so_far(workspace, monkeypat
     result = json.loads(capsys.readouterr().out)
     assert result["rdo"]["stopped"] == "interrupted" and result["rdo"]["steps"] == 2
     assert out.stat().st_size == result["bytes"]["total"] and not list(workspace.glob(".interrupted*"))
+
+
+@pytest.mark.parametrize("extra, message", [(["--perceptual", "-1"], "--perceptual must be a weight >= 0"),
+                                            (["--perceptual", "nan", "--steps", "2"], "--perceptual must be"),
+                                            (["--perceptual", "0.1", "--preset", "fast"], "give --preset medium"),
+                                            (["--perceptual", "0.1", "--steps", "2", "--lpips-weights", "nowhere"],
+                                             "lpips_vgg.safetensors does not exist")])
+def test_a_perceptual_term_without_steps_or_weights_fails_before_any_work(workspace, capsys, extra, message):
+    args = ["encode", "no-such-scene", "-o", str(workspace / "never.csplat"), *extra, "--device", "cpu"]
+    assert main(args) == EXIT_USER
+    assert message in _one_line_error(capsys) and not (workspace / "never.csplat").exists()
+
+
+@needs_lpips
+def test_encode_with_a_perceptual_term_optimises_with_the_lpips_network(workspace, monkeypatch):
+    from codecsplat_warp.metrics.lpips import LPIPS
+
+    seen = []
+    unit_features = LPIPS.unit_features
+    monkeypatch.setattr(LPIPS, "unit_features", lambda self, x: seen.append(x.shape) or unit_features(self, x))
+    monkeypatch.chdir(workspace)
+    args = ["encode", "scenes/a", "--views", "0,5", "--lambda", "256", "--steps", "2", "--perceptual", "0.1",
+            "--lpips-weights", str(LPIPS_WEIGHTS), "-o", "perceptual.csplat", "--device", "cpu", "--json",
+            "--checkpoint", str(workspace / "tiny.safetensors")]
+    assert main(args) == 0
+    assert len(seen) >= 1 + 2 and all(shape[0] == 2 for shape in seen)  # the targets, then each step's renders
+    assert (workspace / "perceptual.csplat").stat().st_size > 0
 
 
 @pytest.mark.parametrize("option, value", [("--steps", "-2"), ("--time-budget", "0"), ("--time-budget", "nan")])

@@ -15,7 +15,8 @@ import codecsplat_warp.eval.report as report
 from codecsplat_warp.baselines import ImageCodec
 from codecsplat_warp.cli import main
 from codecsplat_warp.errors import DataError, InputError
-from codecsplat_warp.eval.evaluate import EvalConfig, Evaluator, RDOSetting, evaluate, layout_rows, row_layout
+from codecsplat_warp.eval.evaluate import (EvalConfig, Evaluator, RDOSetting, check_config, evaluate, layout_rows,
+                                           row_layout)
 from codecsplat_warp.eval.protocols import PROTOCOLS, find_scenes, index_samples
 from codecsplat_warp.eval.report import (BACKBONE, CODECSPLAT, COPY_NEAREST, plot_distortion_vs_time,
                                          plot_rate_distortion, table1, table2)
@@ -23,7 +24,7 @@ from codecsplat_warp.export.video import to_uint8_frames
 from codecsplat_warp.metrics.image import ImageMetrics
 from codecsplat_warp.choices import RDO_CROSS_VIEW_MIN_STEPS, RDO_PRESETS
 from codecsplat_warp.model.pretrained import save_pretrained
-from conftest import tiny_coding_model
+from conftest import LPIPS_WEIGHTS, needs_lpips, tiny_coding_model
 from test_cli_commands import write_indexed_scenes
 
 INDEX = {"a": {"context": [0, 2], "target": [1]}, "b": {"context": [0, 2], "target": [1]}}
@@ -92,6 +93,31 @@ def test_image_codec_and_rdo_rows_of_one_sample(scenes, model, monkeypatch):
                                                                           one.metrics)]
 
 
+@needs_lpips
+def test_perceptual_rdo_rows_optimise_with_the_lpips_vgg_term(scenes, model, monkeypatch):
+    from codecsplat_warp.model import rdo as rdo_module
+
+    sample = index_samples(find_scenes(scenes / "data"), scenes / "index.json", PROTOCOLS["scene"])[0]
+    settings = check_config(replace(_config(scenes, "unused"), rdo_presets=(), rdo_steps=(1,),
+                                    rdo_perceptual=(0.5,), lpips_weights=str(LPIPS_WEIGHTS))).rdo
+    assert [s.name for s in settings] == ["1 step", "1 step, LPIPS 0.5"]
+    evaluator = Evaluator(model, ImageMetrics(LPIPS_WEIGHTS), (64.0,), (), torch.device("cpu"), rdo=settings)
+    terms = []
+    loss = rdo_module.rdo_loss
+
+    def spy(*args, **kwargs):
+        value, parts = loss(*args, **kwargs)
+        terms.append("perceptual" in parts)
+        return value, parts
+
+    monkeypatch.setattr(rdo_module, "rdo_loss", spy)
+    rows = evaluator.run(sample, groups={s.group(64.0) for s in settings})
+    assert [r.method for r in rows] == ["CodecSplat RDO (1 step)", "CodecSplat RDO (1 step, LPIPS 0.5)"]
+    # each run: the start measured, one step, the end measured; only the second with the perceptual term
+    assert terms == [False] * 3 + [True] * 3
+    assert all("lpips_vgg" in r.metrics for r in rows)
+
+
 def _config(scenes, out, **changes) -> EvalConfig:
     config = EvalConfig(data=str(scenes / "data"), index=str(scenes / "index.json"), out=str(out), protocol="scene",
                         lambdas=(64.0,), baselines=("webp", "jpeg"), webp_qualities=(5, 50), jpeg_qualities=(5,),
@@ -124,8 +150,9 @@ def test_the_new_options_belong_to_the_evaluation_a_run_resumes(scenes, model, t
     saved = json.loads((tmp_path / "results.json").read_text())
     assert saved["samples_done"] == 1 and len(saved["rows"]) == 2 + 2 + 1 + 2 + 1  # floor, λ x 3, PLY, images
     assert saved["rdo"] == [{"method": "CodecSplat RDO (medium)", "preset": "medium",
-                             "steps": RDOSetting(preset="medium").resolved_steps, "seed": 0},
-                            {"method": "CodecSplat RDO (3 steps)", "preset": "fast", "steps": 3, "seed": 0}]
+                             "steps": RDOSetting(preset="medium").resolved_steps, "seed": 0, "perceptual": 0.0},
+                            {"method": "CodecSplat RDO (3 steps)", "preset": "fast", "steps": 3, "seed": 0,
+                             "perceptual": 0.0}]
     monkeypatch.setattr(Evaluator, "run", _fake_run(calls, interrupt_at=None))
     assert evaluate(model, _config(scenes, tmp_path), torch.device("cpu"))["samples_done"] == 2
     assert calls == ["a", "b"]  # resumed: a is not run again
@@ -145,7 +172,13 @@ def test_the_new_options_belong_to_the_evaluation_a_run_resumes(scenes, model, t
                                            ({"rdo_presets": ("fast",)}, "takes no optimisation step"),
                                            ({"rdo_presets": ("fastest",)}, "unknown RDO preset"),
                                            ({"rdo_steps": (0,)}, "takes no optimisation step"),
-                                           ({"rdo_steps": (-2,)}, "integer >= 0")])
+                                           ({"rdo_steps": (-2,)}, "integer >= 0"),
+                                           ({"rdo_perceptual": (0.0,)}, "must be > 0"),
+                                           ({"rdo_perceptual": (0.1, 0.1)}, "once, got 0.1"),
+                                           ({"rdo_presets": (), "rdo_steps": (), "rdo_perceptual": (0.1,)},
+                                            "need an RDO preset or step count"),
+                                           ({"rdo_perceptual": (0.1,), "lpips_weights": "nowhere"},
+                                            "lpips_vgg.safetensors does not exist")])
 def test_bad_image_qualities_and_rdo_settings_are_input_errors_before_any_work(tmp_path, changes, match):
     with pytest.raises(InputError, match=match):
         evaluate(None, _config(tmp_path / "nowhere", tmp_path / "out", **changes), torch.device("cpu"))

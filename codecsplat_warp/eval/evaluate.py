@@ -8,7 +8,8 @@ anchors; see :mod:`codecsplat_warp.eval.protocols`):
   targets. Bytes are the whole bitstream (header, cameras, feature streams).
 * **CodecSplat RDO** (``rdo_presets``, ``rdo_steps``): the same at each lambda with the encoder's rate-distortion
   optimisation (``model.encode_scene(..., preset=, steps=, seed=)``, :mod:`codecsplat_warp.model.rdo`), one row
-  set per setting, e.g. method ``CodecSplat RDO (slow)``.
+  set per setting, e.g. method ``CodecSplat RDO (slow)``; with ``rdo_perceptual``, every setting once more with an
+  LPIPS-VGG term of that weight in the loss (``CodecSplat RDO (slow, LPIPS 0.02)``).
 * **Codec-free reference and baselines**, all on the same model's codec-free output (``model(images,
   cameras)``: Gaussians, ``F_c``, ``D_enc``): the Gaussians as an uncompressed float32 3DGS PLY (the
   reconstruction upper bound), (a) PLY attributes quantised + Deflate, (b) gsplat-style PNG, (c) the
@@ -71,6 +72,7 @@ from ..export.video import to_uint8_frames
 from ..gaussians import Gaussians
 from ..measure import machine_name, synchronize, timed
 from ..metrics.image import ImageMetrics
+from ..metrics.lpips import weights_file
 from ..model.codecsplat import model_id
 from ..model.rdo import preset_steps, rdo_config
 from .geometry import ReferenceDepth, depth_errors
@@ -92,26 +94,29 @@ BASE_GROUP = "base"
 class RDOSetting:
     """One encoder rate-distortion optimisation that ``codecsplat eval`` runs at every lambda: a ``preset`` of
     :data:`codecsplat_warp.choices.RDO_PRESETS`, or ``steps`` (which override the preset's count), with the
-    quantisation-noise ``seed``.
+    quantisation-noise ``seed`` and the weight ``perceptual`` of an LPIPS-VGG term in the loss (0: none;
+    :attr:`~codecsplat_warp.model.rdo.RDOConfig.perceptual_weight`).
 
     Raises:
-        InputError: an unknown preset, steps that are not an integer >= 0, or a setting without any step (the
-            amortised encoder, whose rows every evaluation has).
+        InputError: an unknown preset, steps that are not an integer >= 0, a setting without any step (the
+            amortised encoder, whose rows every evaluation has), or a perceptual weight < 0.
     """
 
     preset: str = "fast"
     steps: int | None = None
     seed: int = 0
+    perceptual: float = 0.0
 
     def __post_init__(self) -> None:
-        if not rdo_config(self.preset, self.steps, seed=self.seed).optimises:
+        if not rdo_config(self.preset, self.steps, seed=self.seed, perceptual_weight=self.perceptual).optimises:
             raise InputError(f"RDO setting {self.name!r} takes no optimisation step: it is the amortised encoder, "
                              "whose CodecSplat rows every evaluation has")
 
     @property
     def name(self) -> str:
-        """``slow`` for a preset, ``N steps`` for a step count."""
-        return self.preset if self.steps is None else steps_text(self.steps)
+        """``slow`` for a preset, ``N steps`` for a step count; ``slow, LPIPS 0.02`` with a perceptual term."""
+        name = self.preset if self.steps is None else steps_text(self.steps)
+        return name if self.perceptual == 0 else f"{name}, LPIPS {self.perceptual:g}"
 
     @property
     def method(self) -> str:
@@ -133,10 +138,16 @@ class RDOSetting:
         """The optimisation steps it takes with ``views`` context views."""
         return self.steps if self.steps is not None else preset_steps(self.preset, views)
 
-    @property
-    def encode_options(self) -> dict:
-        """Keyword arguments of :meth:`CodecSplat.encode_scene`."""
-        return {"preset": self.preset, "steps": self.steps, "seed": self.seed}
+    def encode_options(self, perceptual: torch.nn.Module | None) -> dict:
+        """Keyword arguments of :meth:`CodecSplat.encode_scene`, with the LPIPS-VGG network ``perceptual`` that a
+        perceptual term needs (InputError when it has one and ``perceptual`` is None)."""
+        options = {"preset": self.preset, "steps": self.steps, "seed": self.seed}
+        if self.perceptual == 0:
+            return options
+        if perceptual is None:
+            raise InputError(f"RDO setting {self.name!r} needs the LPIPS-VGG weights: pass lpips_weights "
+                             "(--lpips-weights) or set CODECSPLAT_LPIPS_WEIGHTS")
+        return {**options, "rdo_settings": {"perceptual_weight": self.perceptual}, "perceptual": perceptual}
 
     def group(self, lam: float) -> str:
         """The row group of its row at ``lam`` (``slow λ=64``, see :func:`row_layout`)."""
@@ -307,7 +318,7 @@ class Evaluator:
     def _codecsplat(self, sample: Sample, lam: float, reference: torch.Tensor | None,
                     rdo: RDOSetting | None = None) -> Row:
         """CodecSplat at ``lam``, amortised or with the encoder optimisation ``rdo`` (its steps are compress time)."""
-        options = {} if rdo is None else rdo.encode_options
+        options = {} if rdo is None else rdo.encode_options(self.metrics.lpips.get("vgg"))
         with backbone_clock(self.model, self.device) as marks:
             synchronize(self.device)
             start = time.perf_counter()
@@ -403,6 +414,9 @@ class EvalConfig:
     """RDO step counts (>= 1): each adds CodecSplat rows at every lambda, optimised for that many steps."""
     rdo_seed: int = 0
     """Seed of the RDO rows' quantisation noise."""
+    rdo_perceptual: tuple[float, ...] = ()
+    """Weights (> 0) of an LPIPS-VGG term in the RDO loss: each adds the rows of every RDO preset and step count
+    once more, optimised with that term (needs the LPIPS weights, ``lpips_weights``)."""
     units: tuple[tuple[str, str], ...] = ()
     """(scene, row group) pairs (:func:`row_layout`: ``base`` or an RDO setting at a lambda, ``slow λ=64``): only
     the rows of those groups of each scene's samples, a worker's share of an evaluation dealt over processes
@@ -473,7 +487,8 @@ def evaluate(model, config: EvalConfig, device: torch.device,
         config, protocol, device, machine=machine_name(device), model=model_id(model), scenes=[k[0] for k in plan.keys],
         skipped=plan.skipped, lpips=metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1",
         plan=[[s, list(c), list(t)] for s, c, t in plan.keys],
-        rdo=[{"method": s.method, "preset": s.preset, "steps": s.resolved_steps, "seed": s.seed} for s in rdo])
+        rdo=[{"method": s.method, "preset": s.preset, "steps": s.resolved_steps, "seed": s.seed,
+              "perceptual": s.perceptual} for s in rdo])
     rows, start, notes = _finished(files["json"], header) if config.resume else ([], 0, [])
     for note in notes:
         tqdm.write(note, file=sys.stderr)
@@ -516,8 +531,9 @@ def check_config(config: EvalConfig) -> CheckedConfig:
 
     Raises:
         InputError: unknown protocol or baseline, empty lambda list, a lambda outside [16, 1024], bad size,
-            target-view or sample count, bad PNG baseline settings, bad image-codec qualities or RDO settings, a
-            unit of a row group the evaluation does not have.
+            target-view or sample count, bad PNG baseline settings, bad image-codec qualities or RDO settings, RDO
+            perceptual weights without the LPIPS-VGG weights file, a unit of a row group the evaluation does not
+            have.
     """
     protocol = _protocol(config)
     unknown = sorted(set(config.baselines) - set(BASELINE_NAMES))
@@ -529,6 +545,8 @@ def check_config(config: EvalConfig) -> CheckedConfig:
         check_lambda(lam)
     png = PngCompression(sh_clusters=config.png_sh_clusters, kmeans_iterations=config.kmeans_iterations)
     image_codecs, rdo = _image_codecs(config), _rdo_settings(config)
+    if any(setting.perceptual > 0 for setting in rdo):
+        weights_file("vgg", config.lpips_weights)  # the perceptual term's network, before hours of other rows
     layout = row_layout(config.lambdas, config.baselines, image_codecs, rdo)
     unknown = sorted({group for _, group in config.units} - set(layout))
     if unknown:
@@ -614,11 +632,23 @@ def _image_codecs(config: EvalConfig) -> list[ImageCodec]:
 
 
 def _rdo_settings(config: EvalConfig) -> list[RDOSetting]:
-    """The RDO settings of ``config``: its presets, then its step counts (InputError when one is bad or repeated)."""
+    """The RDO settings of ``config``: its presets, then its step counts, then each of those again with each
+    perceptual weight (InputError when one is bad or repeated, or perceptual weights come without a preset or a
+    step count)."""
     _once(config.rdo_presets, "RDO presets")
     _once(config.rdo_steps, "RDO step counts")
-    return ([RDOSetting(preset=preset, seed=config.rdo_seed) for preset in config.rdo_presets]
-            + [RDOSetting(steps=steps, seed=config.rdo_seed) for steps in config.rdo_steps])
+    _once(config.rdo_perceptual, "RDO perceptual weights")
+    plain = ([RDOSetting(preset=preset, seed=config.rdo_seed) for preset in config.rdo_presets]
+             + [RDOSetting(steps=steps, seed=config.rdo_seed) for steps in config.rdo_steps])
+    if config.rdo_perceptual and not plain:
+        raise InputError("RDO perceptual weights need an RDO preset or step count to apply to (rdo_presets / "
+                         "rdo_steps)")
+    for weight in config.rdo_perceptual:
+        if not weight > 0:
+            raise InputError(f"RDO perceptual weights must be > 0 (the rows without the term are there anyway), "
+                             f"got {weight:g}")
+    return plain + [replace(setting, perceptual=float(weight)) for weight in config.rdo_perceptual
+                    for setting in plain]
 
 
 def _once(values: Sequence, what: str) -> None:

@@ -65,6 +65,20 @@ def resolve_weights_dir(weights_dir: str | os.PathLike | None = None) -> pathlib
     return pathlib.Path(path)
 
 
+def weights_file(net: str, weights_dir: str | os.PathLike | None = None) -> pathlib.Path:
+    """The weights file of LPIPS ``net`` (``"vgg"`` or ``"alex"``) in :func:`resolve_weights_dir`'s directory.
+
+    Raises:
+        InputError: unknown net, no directory, or no such file.
+    """
+    if net not in _FILES:
+        raise InputError(f"LPIPS net must be one of {', '.join(_FILES)}, got {net!r}")
+    file = resolve_weights_dir(weights_dir) / _FILES[net]
+    if not file.is_file():
+        raise InputError(f"LPIPS weights file {file} does not exist")
+    return file
+
+
 class LPIPS(nn.Module):
     """Learned perceptual image distance; frozen, eval-mode.
 
@@ -79,21 +93,18 @@ class LPIPS(nn.Module):
 
     def __init__(self, net: str = "vgg", weights_dir: str | os.PathLike | None = None):
         super().__init__()
-        if net not in _FILES:
-            raise InputError(f"LPIPS net must be one of {', '.join(_FILES)}, got {net!r}")
+        file = weights_file(net, weights_dir)
         self.net = net
         self.stages = vgg16_trunk() if net == "vgg" else _alex_trunk()
         channels = [stage[-2].out_channels for stage in self.stages]
         self.lins = nn.ModuleList(nn.Conv2d(c, 1, 1, bias=False) for c in channels)
         self.register_buffer("shift", torch.tensor(SHIFT).reshape(1, 3, 1, 1), persistent=False)
         self.register_buffer("scale", torch.tensor(SCALE).reshape(1, 3, 1, 1), persistent=False)
-        self._load(resolve_weights_dir(weights_dir) / _FILES[net])
+        self._load(file)
         self.requires_grad_(False)
         self.eval()
 
     def _load(self, file: pathlib.Path) -> None:
-        if not file.is_file():
-            raise InputError(f"LPIPS weights file {file} does not exist")
         tensors = load_file(str(file))
         expected = torchvision_features(self.stages)
         for i, lin in enumerate(self.lins):
