@@ -71,3 +71,8 @@ RDO_CROSS_VIEW_MIN_STEPS = {"medium": 25, "slow": 160}
 """The fewest steps of each optimising preset when the cross-view term is on: with it the 2-view targets still
 gained at 160 steps, where without it they peaked near 20. ``medium`` takes less than a quarter of ``slow``'s steps
 because a run's fixed cost (the decoder's capture, the real codings) made 40 steps 31 % of ``slow``'s time."""
+
+RDO_PERCEPTUAL_WEIGHT = 0.02
+"""The LPIPS-VGG weight of ``codecsplat encode --perceptual`` given without a value: on the held-out RE10K samples
+(2 views, ``slow``) it took LPIPS-VGG below WebP's at every size for 19-29 % more bytes and at most 0.2 dB of PSNR;
+0.05 gained little more LPIPS for more bytes (docs/evaluation.md)."""

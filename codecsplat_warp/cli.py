@@ -78,7 +78,7 @@ def _number_list(kind, text: str, what: str) -> list:
 def build_parser() -> argparse.ArgumentParser:
     from .bench.options import ARGUMENTS as BENCHMARK_ARGUMENTS
     from .choices import BASELINE_NAMES, DEMO_LAMBDAS, DEMO_SCENE, DEMO_SEED, DEMO_TARGET_VIEWS, IMAGE_CODEC_QUALITIES
-    from .choices import DEMO_RDO_STEPS, PROCEDURAL
+    from .choices import DEMO_RDO_STEPS, PROCEDURAL, RDO_PERCEPTUAL_WEIGHT
     from .choices import FRAME_FORMATS as FORMATS
     from .choices import PAPER_LAMBDAS, PROTOCOL_NAMES as PROTOCOLS, RDO_PRESETS
 
@@ -118,10 +118,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="stop the optimisation after this many seconds, keeping the best bitstream so far; alone, "
                         "it optimises until the budget is spent (default: no limit)")
     encode.add_argument("--seed", type=int, default=0, help="seed of the optimisation's quantisation noise (default 0)")
-    encode.add_argument("--perceptual", type=float, default=0.0, metavar="WEIGHT",
-                        help="weight of an LPIPS-VGG term in the optimisation's loss, e.g. 0.02: sharper, perceptually "
-                        "closer renders for more bytes and a little PSNR (needs optimisation steps and the LPIPS "
-                        "weights; see docs/cli.md) (default 0: off)")
+    encode.add_argument("--perceptual", type=float, nargs="?", const=RDO_PERCEPTUAL_WEIGHT, default=0.0,
+                        metavar="WEIGHT", help="add an LPIPS-VGG term of this weight to the optimisation's loss "
+                        f"(alone: {RDO_PERCEPTUAL_WEIGHT:g}): sharper, perceptually closer renders for more bytes and a "
+                        "little PSNR (needs optimisation steps and the LPIPS weights; see docs/cli.md) (default: off)")
     encode.add_argument("--lpips-weights", help="folder with lpips_vgg.safetensors, for --perceptual (default "
                         "$CODECSPLAT_LPIPS_WEIGHTS)")
 

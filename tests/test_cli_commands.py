@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from codecsplat_warp.choices import RDO_PERCEPTUAL_WEIGHT
 from codecsplat_warp.cli import BENCHMARKS, EXIT_USER, build_parser, main
 from codecsplat_warp.data import ProceduralConfig, load_scene, procedural_scene
 from codecsplat_warp.demo import DEMO_SCENE, DEMO_SEED, demo_sample
@@ -271,17 +272,18 @@ def test_a_perceptual_term_without_steps_or_weights_fails_before_any_work(worksp
 
 
 @needs_lpips
-def test_encode_with_a_perceptual_term_optimises_with_the_lpips_network(workspace, monkeypatch):
+def test_encode_with_a_perceptual_term_optimises_with_the_lpips_network(workspace, monkeypatch, capsys):
     from codecsplat_warp.metrics.lpips import LPIPS
 
     seen = []
     unit_features = LPIPS.unit_features
     monkeypatch.setattr(LPIPS, "unit_features", lambda self, x: seen.append(x.shape) or unit_features(self, x))
     monkeypatch.chdir(workspace)
-    args = ["encode", "scenes/a", "--views", "0,5", "--lambda", "256", "--steps", "2", "--perceptual", "0.1",
-            "--lpips-weights", str(LPIPS_WEIGHTS), "-o", "perceptual.csplat", "--device", "cpu", "--json",
-            "--checkpoint", str(workspace / "tiny.safetensors")]
+    args = ["encode", "scenes/a", "--views", "0,5", "--lambda", "256", "--steps", "2", "--lpips-weights",
+            str(LPIPS_WEIGHTS), "-o", "perceptual.csplat", "--device", "cpu", "--json", "--checkpoint",
+            str(workspace / "tiny.safetensors"), "--perceptual"]  # no value: the suggested weight
     assert main(args) == 0
+    assert json.loads(capsys.readouterr().out)["perceptual"] == RDO_PERCEPTUAL_WEIGHT
     assert len(seen) >= 1 + 2 and all(shape[0] == 2 for shape in seen)  # the targets, then each step's renders
     assert (workspace / "perceptual.csplat").stat().st_size > 0
 
