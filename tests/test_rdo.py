@@ -5,15 +5,17 @@ the optimised ones, seeds repeat a run, budgets and interruptions keep the best,
 from __future__ import annotations
 
 import math
+import warnings
 
 import pytest
 import torch
-from conftest import tiny_coding_model
+from conftest import LPIPS_WEIGHTS, needs_lpips, tiny_coding_model
 
 from codecsplat_warp.checks import validation
 from codecsplat_warp.codec import parse_bitstream
 from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
 from codecsplat_warp.errors import InputError
+from codecsplat_warp.metrics.lpips import LPIPS
 from codecsplat_warp.model import rdo
 from codecsplat_warp.model.codecsplat import model_id
 
@@ -389,6 +391,35 @@ def test_the_graphed_decoder_gives_the_eager_loss_and_gradients(variable, roundi
         with torch.no_grad():
             for z in latents:
                 z.add_(torch.randn_like(z))
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU visible to torch")
+@needs_lpips
+def test_the_graphed_perceptual_distance_gives_the_eager_distance_and_gradient(monkeypatch):
+    # TF32 convolutions alone move the gradient by ~3 % between any two algorithm choices; in float32 the graphs
+    # and the eager network agree to ~1e-6
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
+    network = LPIPS("vgg", LPIPS_WEIGHTS).cuda()
+    torch.manual_seed(3)
+    images = torch.rand(2, 3, 64, 96, device="cuda")
+    target_units = network.unit_features(images)
+    eager = rdo.perceptual_distance(network, target_units, images, graphed=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # the fallback to eager warns: fail instead
+        graphed = rdo.perceptual_distance(network, target_units, images, graphed=True)
+    assert "forward" in vars(graphed) and "forward" not in vars(eager)  # the graphs replace the module's forward
+    for trial in range(3):  # replays with new renders, strided like the rasterizer's
+        renders = torch.rand(2, 64, 96, 3, device="cuda").permute(0, 3, 1, 2).requires_grad_(True)
+        values, grads = [], []
+        for distance in (eager, graphed):
+            value = distance(renders)
+            values.append(float(value.detach()))
+            grads.append(torch.autograd.grad(value, renders)[0].clone())
+        assert values[1] == pytest.approx(values[0], rel=1e-5)
+        assert float((grads[1] - grads[0]).norm()) <= 1e-4 * float(grads[0].norm())
+    with torch.no_grad():  # a real coding's measure: no gradient
+        assert float(graphed(images)) == pytest.approx(float(eager(images)), abs=1e-6)
 
 
 def _loss_and_gradients(model, latents, target, config, seed, decoder, temperature):
