@@ -257,10 +257,9 @@ class RDOResult:
 class RDOTarget:
     """The fixed inputs of a run: context ``images`` [V,3,H,W], ``cameras``, ``lam``, the decoder's
     ``neighbours`` [V,M], the renderer's ``depth_range`` (near, far), the amortised ``latents`` and decoder's normalised
-    inverse depth ``s_start`` [V,H,W] (None when no term needs it), and the ``perceptual`` network with the context
-    images' features ``perceptual_target`` and the term's ``perceptual_distance`` (renders [V,3,H,W] -> the mean
-    distance, 0-dim; :class:`PerceptualDistance`, replayed as a CUDA graph in runs that replay the decoder) (None
-    without a perceptual term)."""
+    inverse depth ``s_start`` [V,H,W] (None when no term needs it), and the perceptual term's
+    ``perceptual_distance`` (renders [V,3,H,W] -> their mean distance to the context images, 0-dim;
+    :func:`perceptual_distance`; None without a perceptual term)."""
 
     images: torch.Tensor
     cameras: Cameras
@@ -269,8 +268,6 @@ class RDOTarget:
     depth_range: tuple[float, float]
     latents: list[torch.Tensor]
     s_start: torch.Tensor | None
-    perceptual: torch.nn.Module | None = None
-    perceptual_target: list[torch.Tensor] | None = None
     perceptual_distance: Callable[[torch.Tensor], torch.Tensor] | None = None
 
 
@@ -322,8 +319,7 @@ def rdo_target(model, images: torch.Tensor, cameras: Cameras, lam: float, start:
     target = RDOTarget(images, cameras, lam, context_neighbours(cameras, model.config.neighbours),
                        render_depth_range(cameras), [z.detach() for z in start.latents], s_start)
     if config.perceptual_weight > 0:
-        target.perceptual, target.perceptual_target = perceptual, perceptual.unit_features(images)
-        target.perceptual_distance = perceptual_distance(perceptual, target.perceptual_target, images,
+        target.perceptual_distance = perceptual_distance(perceptual, perceptual.unit_features(images), images,
                                                          uses_cuda_graphs(config, images.device))
     return target
 
