@@ -296,6 +296,25 @@ def test_the_cpu_runs_the_eager_decoder():
     assert rdo.uses_cuda_graphs(rdo.RDOConfig(steps=100, precision="bfloat16"), cuda)  # captured under autocast
 
 
+def test_bfloat16_runs_the_networks_under_autocast_on_the_cpu_with_the_float32_gradient_direction():
+    model = tiny_coding_model(5)
+    images, cameras = _scene(13)
+    start = _start(model, images, cameras)
+    model.train()
+    results = {}
+    for precision in ("float32", "bfloat16"):
+        config = rdo.RDOConfig(steps=1, precision=precision)
+        target = rdo.rdo_target(model, images, cameras, LAM, start, config)
+        latents = [z.clone().requires_grad_(True) for z in start.latents]
+        loss, _ = rdo.rdo_loss(model, latents, target, config, torch.Generator().manual_seed(4))
+        grads = torch.autograd.grad(loss, latents)
+        results[precision] = loss.detach(), torch.cat([g.flatten() for g in grads])
+    (loss32, grad32), (loss16, grad16) = results["float32"], results["bfloat16"]
+    assert float(loss16) != float(loss32), "bf16 autocast reached the networks"
+    assert float(loss16) == pytest.approx(float(loss32), rel=0.05)
+    assert float(torch.nn.functional.cosine_similarity(grad16, grad32, dim=0)) >= 0.98
+
+
 def test_optimising_the_feature_gives_a_decodable_bitstream_that_fits_the_context_better():
     model = tiny_coding_model(0)
     images, cameras = _scene()

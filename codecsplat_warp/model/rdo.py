@@ -122,8 +122,8 @@ class RDOConfig:
         check_every: steps between two real codings of the latents (the best measured is kept); 0 codes only the
             amortised latents and the last ones.
         seed: seed of the training quantiser's noise.
-        precision: ``"float32"`` or ``"bfloat16"`` (bf16 autocast for the networks on CUDA; the geometry and the
-            rasterizer stay float32).
+        precision: ``"float32"`` or ``"bfloat16"`` (bf16 autocast for the networks, on CUDA and on the CPU; the
+            geometry, the rasterizer and the real codings at the checks stay float32).
         cuda_graphs: on CUDA, run the decoder up to the Gaussians as CUDA graphs captured once per run
             (:class:`GraphedDecoder`, in either precision); ignored on the CPU.
         variable: what Adam moves: ``"latents"`` (the posterior means on the gained grid) or ``"feature"`` (the
@@ -483,7 +483,7 @@ def rdo_loss(model, variables: list[torch.Tensor], target: RDOTarget, config: RD
     """
     cameras, images = target.cameras, target.images
     autocast = torch.autocast(images.device.type, dtype=torch.bfloat16,
-                              enabled=config.precision == "bfloat16" and images.device.type == "cuda")
+                              enabled=config.precision == "bfloat16")
     with autocast:
         if compressed is not None:
             bits = compressed.bits.sum().to(images.device, torch.float32)
