@@ -316,12 +316,11 @@ def rdo_target(model, images: torch.Tensor, cameras: Cameras, lam: float, start:
         raise InputError("RDO with a perceptual weight needs the perceptual network (e.g. codecsplat_warp.metrics."
                          "LPIPS('vgg')): pass perceptual=")
     s_start = model.depth_head(start.feature.float(), cameras)[0] if config.depth_weight > 0 else None
-    target = RDOTarget(images, cameras, lam, context_neighbours(cameras, model.config.neighbours),
-                       render_depth_range(cameras), [z.detach() for z in start.latents], s_start)
-    if config.perceptual_weight > 0:
-        target.perceptual_distance = perceptual_distance(perceptual, perceptual.unit_features(images), images,
-                                                         uses_cuda_graphs(config, images.device))
-    return target
+    distance = (perceptual_distance(perceptual, perceptual.unit_features(images), images,
+                                    uses_cuda_graphs(config, images.device))
+                if config.perceptual_weight > 0 else None)
+    return RDOTarget(images, cameras, lam, context_neighbours(cameras, model.config.neighbours),
+                     render_depth_range(cameras), [z.detach() for z in start.latents], s_start, distance)
 
 
 Decoded = tuple[torch.Tensor, torch.Tensor, Gaussians]
