@@ -38,12 +38,16 @@ from warp._src.types import array_t  # the descriptor type wp.from_torch(return_
 
 from .errors import InputError
 
+_UNSIGNED_WIDE = (torch.uint32, torch.uint16)
+"""Unsigned dtypes that ``wp.from_torch`` does not take, wrapped by :func:`to_warp` itself."""
+
 _TORCH_TO_WARP_DTYPE = {
     torch.float32: wp.float32,
     torch.float64: wp.float64,
     torch.int32: wp.int32,
     torch.int64: wp.int64,
     torch.uint32: wp.uint32,
+    torch.uint16: wp.uint16,
     torch.uint8: wp.uint8,
 }
 
@@ -168,7 +172,7 @@ def _threads_variable() -> int | None:
 
 
 def warp_dtype(dtype: torch.dtype):
-    """Warp scalar type for a torch dtype (float32, float64, int32, int64, uint32, uint8)."""
+    """Warp scalar type for a torch dtype (float32, float64, int32, int64, uint32, uint16, uint8)."""
     try:
         return _TORCH_TO_WARP_DTYPE[dtype]
     except KeyError:
@@ -359,9 +363,10 @@ def to_warp(tensor: torch.Tensor, dtype=None):
 
     ``dtype`` may be a Warp vector/matrix type whose trailing dimension(s) the tensor provides.
     """
-    if tensor.dtype == torch.uint32:  # wp.from_torch does not take uint32 tensors (scalar elements only here)
-        array = wp.array(ptr=tensor.data_ptr(), dtype=wp.uint32, shape=tuple(tensor.shape),
-                         strides=tuple(4 * s for s in tensor.stride()), device=warp_device(tensor.device))  # fmt: skip
+    if tensor.dtype in _UNSIGNED_WIDE:  # wp.from_torch does not take these (scalar elements only here)
+        size = tensor.element_size()
+        array = wp.array(ptr=tensor.data_ptr(), dtype=_TORCH_TO_WARP_DTYPE[tensor.dtype], shape=tuple(tensor.shape),
+                         strides=tuple(size * s for s in tensor.stride()), device=warp_device(tensor.device))  # fmt: skip
         array._tensor = tensor  # keeps the memory alive, as wp.from_torch does
         return array
     return wp.from_torch(tensor.detach(), dtype=dtype, requires_grad=False)

@@ -10,7 +10,8 @@ import torch
 from codecsplat_warp.device import THREADS_VARIABLE, cpu_threads, set_cpu_threads
 from codecsplat_warp.errors import InputError
 from codecsplat_warp.ops.primitives import run_concurrently, weighted_chunks
-from codecsplat_warp.ops.raster import cpu_layout, rasterize
+from codecsplat_warp.kernels.raster_reach import MAX_CONDITIONED, POWER_ROUNDING
+from codecsplat_warp.ops.raster import cpu_layout, project_gaussians, rasterize
 from codecsplat_warp.reference.raster import rasterize_dense
 from codecsplat_warp.synthetic import random_gaussians
 
@@ -65,6 +66,41 @@ def test_tile_layout_matches_the_block_layout(tile_size):
     assert torch.equal(tiles[3], blocks[3])
     for a, b in zip(tiles[4:], blocks[4:]):
         assert (a - b).abs().max() <= 1e-5 * b.abs().max()
+
+
+def needles_and_faint_veils(dtype=torch.float32):
+    """Random Gaussians (:func:`random_gaussians`, 2 cameras, 40x40) of which a few are needles, too ill-conditioned
+    on screen for a line interval (a conic of condition number g * k > MAX_CONDITIONED), and a few faint veils that
+    span many tiles: the two extremes of the tile layout's line masks."""
+    scene = random_gaussians(60, width=40, height=40, cameras=2, dtype=dtype, seed=21)
+    means, quats, scales, opacities = scene[:4]
+    quats[:4] = torch.tensor([1.0, 0.0, 0.0, 0.2], dtype=dtype)  # a slight turn about the view axis
+    scales[:4] = torch.tensor([20.0, 1e-4, 1e-4], dtype=dtype)
+    scales[4:10] = torch.rand(6, 3, generator=torch.Generator().manual_seed(3), dtype=dtype) * 0.6 + 0.4
+    opacities[4:10] = 0.02
+    return scene
+
+
+def test_needles_get_every_pixel_of_their_lines_and_faint_veils_their_intervals():
+    """The needles' conics lie beyond the line intervals' conditioning (their lines are given whole), and with the
+    veils the tile layout still composites what the block layout does: images to float32 rounding (a pixel the
+    masks missed would be off by at least 1/255 of a colour), the gradients of opacities and colours to a few ulps
+    of the largest (those of the needles' shapes pass through a near-singular covariance, where the two layouts'
+    summation orders differ by more)."""
+    scene = needles_and_faint_veils()
+    conics = project_gaussians(*scene, 40, 40).conics.double()[:, :4]
+    a, b, c = conics.unbind(-1)
+    largest = 0.5 * (a + c) + (0.25 * (a - c) ** 2 + b * b).sqrt()
+    condition = largest * largest / (a * c - b * b)
+    assert (POWER_ROUNDING["float32"] * condition > MAX_CONDITIONED).all()
+    for tile_size in (8, 32):
+        tiles = render_and_differentiate(scene, 40, tile_size)
+        with cpu_layout("blocks"):
+            blocks = render_and_differentiate(scene, 40, tile_size)
+        for a, b in zip(tiles[:3], blocks[:3]):
+            assert (a - b).abs().max() <= 1e-6
+        for a, b in zip(tiles[7:9], blocks[7:9]):  # opacities, colours
+            assert (a - b).abs().max() <= 1e-5 * b.abs().max()
 
 
 def test_block_layout_still_matches_the_dense_reference_in_float64():

@@ -22,8 +22,8 @@ Function (or, when nothing needs a gradient, called without one) so that a call 
    render, is the same.
 5. Front-to-back compositing per tile (expected depth normalised in the kernel), and a hand-written back-to-front
    backward. On CUDA a block of lanes per tile stages its rows in shared memory
-   (:mod:`~codecsplat_warp.kernels.raster_composite`); on the CPU one thread per tile reads them in place, the
-   tiles split over :func:`~codecsplat_warp.device.cpu_threads` threads
+   (:mod:`~codecsplat_warp.kernels.raster_composite`); on the CPU one thread per tile reads them in place, 16
+   pixels of a line at a time, the tiles split over :func:`~codecsplat_warp.device.cpu_threads` threads
    (:mod:`~codecsplat_warp.kernels.raster_composite_cpu`, see :data:`CPU_LAYOUTS`), with the same results on any
    number of threads. Projection gradients come from an adjoint launch of its straight-line twin kernel.
 
@@ -659,12 +659,13 @@ class _BlockComposite(NamedTuple):
 
 
 class _TileState(NamedTuple):
-    """What the tile layout's backward needs from its forward: ``skip_powers [count]`` (the Gaussians' dtype) and
-    ``line_powers [count]`` float64, and the binning's ``positions [count]`` int32 (where each sorted intersection
-    was emitted), ``tile_counts`` and inclusive ``offsets`` ``[B*N]`` int64."""
+    """What the tile layout's backward needs from its forward: ``skip_powers [count]`` (the Gaussians' dtype),
+    ``line_masks [count * tile_size]`` (:func:`_line_mask_dtype`; every intersection's pixels on every line of its
+    tile), and the binning's ``positions [count]`` int32 (where each sorted intersection was emitted),
+    ``tile_counts`` and inclusive ``offsets`` ``[B*N]`` int64."""
 
     skip_powers: torch.Tensor
-    line_powers: torch.Tensor
+    line_masks: torch.Tensor
     positions: torch.Tensor
     tile_counts: torch.Tensor
     offsets: torch.Tensor
@@ -684,16 +685,16 @@ class _TileComposite:
         splats, settings = binning.splats, binning.settings
         count = sorted_ids.shape[0]
         skip_powers = splats.new_empty(count)
-        line_powers = splats.new_empty(count, dtype=torch.float64)
+        line_masks = sorted_ids.new_empty(count * settings.tile_size, dtype=_line_mask_dtype(settings.tile_size))
         common = _composite_args(ranges, sorted_ids, splats, colors_or_black, settings)
         threshold = warp_dtype(splats.dtype)(settings.min_transmittance)
         run_concurrently([
             functools.partial(launch, raster_composite_cpu.composite_forward_tiles, tiles,
-                              [*common, first, threshold, _POWER_ROUNDING[splats.dtype], skip_powers, line_powers,
-                               *_line_scratch(sorted_ids), *outputs], wdev, layout=splats.dtype)
+                              [*common, first, threshold, _POWER_ROUNDING[splats.dtype], skip_powers, line_masks,
+                               *outputs], wdev, layout=(splats.dtype, line_masks.dtype))
             for first, tiles in _tile_runs(ranges)
         ])  # fmt: skip
-        return _TileState(skip_powers, line_powers, positions, binning.tile_counts, binning.offsets)
+        return _TileState(skip_powers, line_masks, positions, binning.tile_counts, binning.offsets)
 
     def backward(self, saved: _Saved, colors_or_black, settings: _Settings, output_grads: list, wdev) -> torch.Tensor:
         """The gradient of the projected rows ``[B*N, 10]`` from the gradients of the flat outputs: per
@@ -704,9 +705,9 @@ class _TileComposite:
         common = _composite_args(saved.ranges, saved.sorted_ids, splats, colors_or_black, settings)
         run_concurrently([
             functools.partial(launch, raster_composite_cpu.composite_backward_tiles, tiles_in_run,
-                              [*common, first, tiles.skip_powers, tiles.line_powers, *_line_scratch(saved.sorted_ids),
-                               tiles.positions, saved.state, saved.last, *output_grads, grad_intersections],
-                              wdev, layout=splats.dtype)
+                              [*common, first, tiles.skip_powers, tiles.line_masks, tiles.positions, saved.state,
+                               saved.last, *output_grads, grad_intersections], wdev,
+                              layout=(splats.dtype, tiles.line_masks.dtype))
             for first, tiles_in_run in _tile_runs(saved.ranges)
         ])  # fmt: skip
         grad_rows = torch.empty_like(splats)
@@ -722,10 +723,10 @@ class _TileComposite:
 _TILE_COMPOSITE = _TileComposite()
 
 
-def _line_scratch(sorted_ids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The tile layout's per-line scratch for ``count`` sorted intersections: row list (int32) and masks (uint32)."""
-    count = sorted_ids.shape[0]
-    return sorted_ids.new_empty(count), sorted_ids.new_empty(count, dtype=torch.uint32)
+def _line_mask_dtype(tile_size: int) -> torch.dtype:
+    """The dtype of the tile layout's line masks (a bit per pixel of a tile's line): uint16 for tiles of at most 16
+    pixels a side, else uint32."""
+    return torch.uint16 if tile_size <= 16 else torch.uint32
 
 
 def _tile_runs(ranges: torch.Tensor) -> list[tuple[int, int]]:
