@@ -202,12 +202,12 @@ def test_the_cross_view_renders_come_from_the_other_views_gaussians_in_the_same_
         calls = []
         render = model.render
         monkeypatch.setattr(model, "render", lambda *a, **k: calls.append(1) or render(*a, **k))
-        rgb, (cross, alpha) = rdo.render_context_views(model, gaussians, target, cross_views=True)
+        rgb, alpha = rdo.render_context_views(model, gaussians, target, cross_views=True)
     assert len(calls) == 1
-    assert (rgb - whole).abs().max() < 1e-5
-    assert (cross - torch.cat([o["rgb"] for o in others])).abs().max() < 1e-5
-    assert (alpha - torch.cat([o["alpha"] for o in others])).abs().max() < 1e-5
-    assert float(alpha.mean()) > 0.05, "the other view must cover some of each view"
+    assert (rgb[:2] - whole).abs().max() < 1e-5
+    assert (rgb[2:] - torch.cat([o["rgb"] for o in others])).abs().max() < 1e-5
+    assert (alpha[2:] - torch.cat([o["alpha"] for o in others])).abs().max() < 1e-5
+    assert float(alpha[2:].mean()) > 0.05, "the other view must cover some of each view"
 
 
 def test_the_optional_terms_enter_the_loss_only_when_weighted():
@@ -410,6 +410,45 @@ def test_the_graphed_decoder_gives_the_eager_loss_and_gradients(variable, roundi
         with torch.no_grad():
             for z in latents:
                 z.add_(torch.randn_like(z))
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU visible to torch")
+@pytest.mark.parametrize("cross_view_weight", [0.0, 0.5])
+def test_the_graphed_context_loss_gives_the_eager_loss_and_gradients(cross_view_weight):
+    torch.manual_seed(4)
+    images = torch.rand(2, 3, 24, 40, device="cuda")
+    config = rdo.RDOConfig(steps=rdo.GRAPH_MIN_STEPS, cross_view_weight=cross_view_weight)
+    eager = rdo.context_loss(images, LAM, config, graphed=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # the fallback to eager warns: fail instead
+        graphed = rdo.context_loss(images, LAM, config, graphed=True)
+    assert "forward" in vars(graphed) and "forward" not in vars(eager)  # the graphs replace the module's forward
+    views = 4 if cross_view_weight else 2
+    for trial in range(3):  # replays with new renders, strided like the rasterizer's, and new bits
+        inputs = [torch.rand(views, 24, 40, 3, device="cuda").permute(0, 3, 1, 2).requires_grad_(True),
+                  torch.rand((), device="cuda").mul(1e4).requires_grad_(True)]
+        if cross_view_weight:
+            inputs.append(torch.rand(views, 24, 40, device="cuda").requires_grad_(True))
+        results = []
+        for loss in (eager, graphed):
+            value, parts = loss(*inputs)
+            results.append((float(value), parts.detach().clone(), torch.autograd.grad(value, inputs)))
+        (a, a_parts, a_grads), (b, b_parts, b_grads) = results
+        assert b == pytest.approx(a, rel=1e-6)
+        assert torch.allclose(a_parts, b_parts, rtol=1e-6)
+        assert (float(a_parts[1]) > 0) == bool(cross_view_weight)
+        for x, y in zip(a_grads, b_grads):
+            assert float((x - y).norm()) <= 1e-6 * float(x.norm())
+
+
+def test_the_loss_needs_the_target_made_for_its_weights():
+    model = tiny_coding_model(5)
+    images, cameras = _scene(13)
+    start = model.codec.compress(model(images, cameras)["F_c"].detach(), LAM, reconstruct=True)
+    target = rdo.rdo_target(model, images, cameras, LAM, start, rdo.RDOConfig(steps=1, cross_view_weight=0.5))
+    with pytest.raises(InputError, match="same cross-view and rate weights"):
+        rdo.rdo_loss(model, [z.clone() for z in start.latents], target, rdo.RDOConfig(steps=1, cross_view_weight=1.0))
 
 
 @pytest.mark.cuda

@@ -259,7 +259,8 @@ class RDOTarget:
     ``neighbours`` [V,M], the renderer's ``depth_range`` (near, far), the amortised ``latents`` and decoder's normalised
     inverse depth ``s_start`` [V,H,W] (None when no term needs it), and the perceptual term's
     ``perceptual_distance`` (renders [V,3,H,W] -> their mean distance to the context images, 0-dim;
-    :func:`perceptual_distance`; None without a perceptual term)."""
+    :func:`perceptual_distance`; None without a perceptual term) and the ``context_loss`` of the run's settings
+    (:func:`context_loss`)."""
 
     images: torch.Tensor
     cameras: Cameras
@@ -269,6 +270,7 @@ class RDOTarget:
     latents: list[torch.Tensor]
     s_start: torch.Tensor | None
     perceptual_distance: Callable[[torch.Tensor], torch.Tensor] | None = None
+    context_loss: Callable[..., tuple[torch.Tensor, torch.Tensor]] | None = None
 
 
 class PerceptualDistance(torch.nn.Module):
@@ -304,6 +306,60 @@ def perceptual_distance(network: torch.nn.Module, target_units: list[torch.Tenso
         return distance
 
 
+class ContextLoss(torch.nn.Module):
+    """The loss's terms that every run has, from the context renders and the bits:
+    ``lam / LAMBDA_MAX * (MSE + cross_view_weight * cross) + rate_weight * bpp`` (:func:`cross_view_error` only with
+    a cross-view weight). Called with the rasterizer's ``rgb`` [V,3,H,W] (or [2V,3,H,W] with the cross-view renders
+    after the context views', :func:`render_context_views`), the estimated ``bits`` (0-dim float32) and, with the
+    cross-view term, its ``alpha`` [2V,H,W]; returns ``(loss, [mse, cross, bpp])``, float32 (cross 0 without the
+    term)."""
+
+    def __init__(self, images: torch.Tensor, lam: float, cross_view_weight: float, rate_weight: float):
+        super().__init__()
+        self.images = images
+        self.distortion_weight = lam / LAMBDA_MAX
+        self.cross_view_weight = cross_view_weight
+        self.rate_weight = rate_weight
+
+    def forward(self, rgb: torch.Tensor, bits: torch.Tensor, *alpha: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+        V = self.images.shape[0]
+        mse = F.mse_loss(rgb[:V], self.images)
+        bpp = bits / self.images[:, 0].numel()
+        cross = torch.zeros_like(mse)
+        distortion = mse
+        if self.cross_view_weight > 0:
+            cross = cross_view_error(rgb[V:], alpha[0][V:], self.images)
+            distortion = distortion + self.cross_view_weight * cross
+        loss = self.distortion_weight * distortion + self.rate_weight * bpp
+        return loss, torch.stack([mse, cross, bpp])
+
+
+def context_loss(images: torch.Tensor, lam: float, config: RDOConfig, graphed: bool
+                 ) -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:  # fmt: skip
+    """:class:`ContextLoss` of ``config``'s weights for the context ``images`` [V,3,H,W]; with ``graphed`` (CUDA)
+    its forward and backward captured as CUDA graphs (``torch.cuda.make_graphed_callables``; their outputs are
+    overwritten by the next call). Launched eagerly, its two dozen small kernels and their gradients left the GPU
+    idle for about 2.5 ms of a 2-view step on an H100 (the host launching them one by one). A capture that fails
+    falls back to eager, with a warning."""
+    loss = ContextLoss(images, lam, config.cross_view_weight, config.rate_weight)
+    if not graphed:
+        return loss
+    V, _, H, W = images.shape
+    views = 2 * V if config.cross_view_weight > 0 else V
+    try:
+        with torch.enable_grad(), validation(False):
+            sample = (torch.rand(views, 3, H, W, device=images.device).requires_grad_(True),
+                      torch.rand((), device=images.device).requires_grad_(True))
+            if config.cross_view_weight > 0:
+                sample += (torch.rand(views, H, W, device=images.device).requires_grad_(True),)
+            return torch.cuda.make_graphed_callables(loss, sample)
+    except RuntimeError as error:
+        warnings.warn(f"the RDO loss runs without CUDA graphs: capturing it failed ({error})", RuntimeWarning,
+                      stacklevel=2)
+        return loss
+
+
 @torch.no_grad()
 def rdo_target(model, images: torch.Tensor, cameras: Cameras, lam: float, start: CompressedLatents,
                config: RDOConfig, perceptual: torch.nn.Module | None = None) -> RDOTarget:
@@ -316,11 +372,12 @@ def rdo_target(model, images: torch.Tensor, cameras: Cameras, lam: float, start:
         raise InputError("RDO with a perceptual weight needs the perceptual network (e.g. codecsplat_warp.metrics."
                          "LPIPS('vgg')): pass perceptual=")
     s_start = model.depth_head(start.feature.float(), cameras)[0] if config.depth_weight > 0 else None
-    distance = (perceptual_distance(perceptual, perceptual.unit_features(images), images,
-                                    uses_cuda_graphs(config, images.device))
+    graphed = uses_cuda_graphs(config, images.device)
+    distance = (perceptual_distance(perceptual, perceptual.unit_features(images), images, graphed)
                 if config.perceptual_weight > 0 else None)
     return RDOTarget(images, cameras, lam, context_neighbours(cameras, model.config.neighbours),
-                     render_depth_range(cameras), [z.detach() for z in start.latents], s_start, distance)
+                     render_depth_range(cameras), [z.detach() for z in start.latents], s_start, distance,
+                     context_loss(images, lam, config, graphed))
 
 
 Decoded = tuple[torch.Tensor, torch.Tensor, Gaussians]
@@ -415,7 +472,7 @@ class GraphedDecoder:
         if self.temperature is not None and temperature is not None:
             self.temperature.fill_(temperature)
         for noise in self.noise:
-            noise.copy_(torch.rand(noise.shape, generator=generator, device=noise.device, dtype=noise.dtype))
+            torch.rand(noise.shape, generator=generator, device=noise.device, dtype=noise.dtype, out=noise)
         bits, s, *fields_ = _ReplayDecoder.apply(self, *variables)
         return bits, s, Gaussians(*fields_)
 
@@ -493,21 +550,26 @@ def rdo_loss(model, variables: list[torch.Tensor], target: RDOTarget, config: RD
             annealing = None if temperature is None else torch.full((), temperature, device=images.device)
             bits, s, gaussians = decode_variables(model, variables, target, config.variable, generator,
                                                   temperature=annealing)
-    rgb, cross = render_context_views(model, gaussians, target, config.cross_view_weight > 0)
+    rendered = render_context_views(model, gaussians, target, config.cross_view_weight > 0)
+    head = target.context_loss
+    if (head.cross_view_weight, head.rate_weight) != (config.cross_view_weight, config.rate_weight):
+        raise InputError("rdo_loss needs the RDOTarget that rdo_target made for the same cross-view and rate weights")
     with record_function("loss"):
-        parts = {"mse": F.mse_loss(rgb, images), "bpp": bits.float() / images[:, 0].numel()}
-    distortion = parts["mse"]
+        loss, values = target.context_loss(rendered[0], bits.float(), *rendered[1:])
+        loss, values = loss.clone(), values.clone()  # a graph's outputs are overwritten by its next replay
+    parts = {"mse": values[0], "bpp": values[2]}
+    if config.cross_view_weight > 0:
+        parts["cross"] = values[1]
+    extra = []
     if config.perceptual_weight > 0:
         with record_function("perceptual"):
-            parts["perceptual"] = target.perceptual_distance(rgb).clone()  # a graph's output is overwritten
-        distortion = distortion + config.perceptual_weight * parts["perceptual"]
-    if config.cross_view_weight > 0:
-        parts["cross"] = cross_view_error(*cross, images)
-        distortion = distortion + config.cross_view_weight * parts["cross"]
+            parts["perceptual"] = target.perceptual_distance(rendered[0][:cameras.num_views]).clone()
+        extra.append(config.perceptual_weight * parts["perceptual"])
     if config.depth_weight > 0 and target.s_start is not None:
         parts["depth"] = (s.float() - target.s_start).abs().mean()
-        distortion = distortion + config.depth_weight * parts["depth"]
-    loss = target.lam / LAMBDA_MAX * distortion + config.rate_weight * parts["bpp"]
+        extra.append(config.depth_weight * parts["depth"])
+    if extra:
+        loss = loss + target.lam / LAMBDA_MAX * sum(extra)
     if config.anchor_weight > 0:
         moved = variables if compressed is None else compressed.latents
         parts["anchor"] = torch.stack([(z - z0).square().mean() for z, z0 in zip(moved, target.latents)]).mean()
@@ -516,18 +578,17 @@ def rdo_loss(model, variables: list[torch.Tensor], target: RDOTarget, config: RD
 
 
 def render_context_views(model, gaussians: Gaussians, target: RDOTarget, cross_views: bool
-                         ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor] | None]:  # fmt: skip
-    """The decoded Gaussians rendered into the context cameras, rgb [V,3,H,W]; with ``cross_views`` also each
-    context view rendered from the other views' Gaussians alone (rgb [V,3,H,W], premultiplied, and alpha [V,H,W];
-    else None), in the same rasterizer call (its ``leave_out``). ``gaussians`` are the decoder's V*H*W
+                         ) -> tuple[torch.Tensor] | tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """The decoded Gaussians rendered into the context cameras: ``(rgb [V,3,H,W],)``; with ``cross_views``
+    ``(rgb [2V,3,H,W], alpha [2V,H,W])``, the second V each context view rendered from the other views' Gaussians
+    alone (premultiplied), in the same rasterizer call (its ``leave_out``). ``gaussians`` are the decoder's V*H*W
     pixel-aligned Gaussians, view-major."""
     cameras = target.cameras
     if not cross_views:
-        return model.render(gaussians, cameras, depth_range=target.depth_range)["rgb"], None
-    V = cameras.num_views
+        return (model.render(gaussians, cameras, depth_range=target.depth_range)["rgb"],)
     twice, leave_out = cameras.memoized("rdo_cross_views", lambda: _cross_view_cameras(gaussians, cameras))
     out = model.render(gaussians, twice, depth_range=target.depth_range, leave_out=leave_out)
-    return out["rgb"][:V], (out["rgb"][V:], out["alpha"][V:])
+    return out["rgb"], out["alpha"]
 
 
 def _cross_view_cameras(gaussians: Gaussians, cameras: Cameras) -> tuple[Cameras, torch.Tensor]:
@@ -736,8 +797,11 @@ def rdo_step(model, variables: list[torch.Tensor], optimiser: torch.optim.Optimi
              temperature: float | None = None) -> None:
     """One optimisation step of the optimised tensors ``variables`` in place (training quantiser; no host
     synchronisation of its own): loss, backward, non-finite gradients zeroed, Adam, clamp to
-    +-:data:`LATENT_LIMIT`. ``decoder``: see :func:`step_decoder`; ``temperature``: see :func:`rdo_loss`."""
-    model.train()
+    +-:data:`LATENT_LIMIT`. ``decoder``: see :func:`step_decoder`; ``temperature``: see :func:`rdo_loss`. The
+    model is put in training mode unless it is in it already (the optimisation sets modes on the whole model only;
+    a call of ``train()`` walks all its 295 modules)."""
+    if not model.training:
+        model.train()
     optimiser.zero_grad(set_to_none=True)
     loss, _ = rdo_loss(model, variables, target, config, generator, decoder=decoder, temperature=temperature)
     loss.backward()
