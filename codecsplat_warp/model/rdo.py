@@ -124,8 +124,9 @@ class RDOConfig:
         seed: seed of the training quantiser's noise.
         precision: ``"float32"`` or ``"bfloat16"`` (bf16 autocast for the networks, on CUDA and on the CPU; the
             geometry, the rasterizer and the real codings at the checks stay float32).
-        cuda_graphs: on CUDA, run the decoder up to the Gaussians as CUDA graphs captured once per run
-            (:class:`GraphedDecoder`, in either precision); ignored on the CPU.
+        cuda_graphs: on CUDA, run the decoder up to the Gaussians (:class:`GraphedDecoder`, in either precision)
+            and the loss's fixed terms (:func:`context_loss`) as CUDA graphs captured once per run; ignored on the
+            CPU.
         variable: what Adam moves: ``"latents"`` (the posterior means on the gained grid) or ``"feature"`` (the
             encoder's F_c, through the codec's analysis and posterior; :func:`optimise_latents` then needs it).
         feature_step: with ``variable="feature"``, Adam's start step as a fraction of the amortised F_c's standard
