@@ -287,8 +287,9 @@ class CodecSplat(nn.Module):
                 near=near, far=far, background=background, mode="classic", sh_degree=gaussians.sh_degree,
                 render_depth=render_depth, leave_out=leave_out,
             )
-        return {"rgb": rgb.permute(0, 3, 1, 2), "alpha": alpha[..., 0],
-                "depth": depth[..., 0] if depth is not None else None, "meta": meta}
+        # views all three; squeeze's gradient is a view too, where indexing's would zero and copy a new tensor
+        return {"rgb": rgb.permute(0, 3, 1, 2), "alpha": alpha.squeeze(-1),
+                "depth": depth.squeeze(-1) if depth is not None else None, "meta": meta}
 
     def render_own_views(self, gaussians: Gaussians, cameras: Cameras) -> torch.Tensor:
         """[V,3,H,W]: each context view's own Gaussians rendered alone into its own camera (float32).
