@@ -259,12 +259,15 @@ def _depth_parser(sub) -> None:
 # --------------------------------------------------------------------------------------------------
 # Shared steps
 def _use_threads(count: int | None) -> None:
-    """Apply ``--threads`` (or its default) before a command runs (imports torch and Warp)."""
-    from .device import set_cpu_threads
+    """Apply ``--threads`` (or its default) before a command runs (imports torch and Warp), and keep the memory the
+    process frees unless ``$CODECSPLAT_KEEP_FREED_MEMORY`` is 0 (:func:`~codecsplat_warp.device.keep_freed_memory`)."""
+    from .device import freed_memory_wanted, keep_freed_memory, set_cpu_threads
 
     if count is not None and count < 1:
         raise UsageError(f"--threads must be a positive integer, got {count}")
     set_cpu_threads(count)
+    if freed_memory_wanted():
+        keep_freed_memory()
 
 
 def _device(args):

@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import json
 import os
+import platform
 from dataclasses import replace
 
 import pytest
 import torch
 
 from codecsplat_warp.cli import main
+from codecsplat_warp.device import freed_memory_kept, keep_freed_memory
 from codecsplat_warp.errors import DataError, InputError, ShardError
 from codecsplat_warp.eval import shards
 from codecsplat_warp.eval.evaluate import EvalConfig, Evaluator, check_config
@@ -70,6 +72,17 @@ def test_run_sharded_returns_the_results_in_shard_order():
     assert alone == [(9.0, "cpu", os.getpid(), torch.get_num_threads())]
     with pytest.raises(InputError, match="one device per shard"):
         run_sharded(_sum_of_squares, parts, [CPU], progress=False)
+
+
+def _freed_memory_kept(shard: list[int], device: torch.device) -> bool:
+    """A task: whether its process keeps the memory it frees."""
+    return freed_memory_kept()
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="keeping freed memory needs glibc's mallopt")
+def test_workers_keep_freed_memory_when_the_parent_does():
+    assert keep_freed_memory()
+    assert run_sharded(_freed_memory_kept, [[1], [2]], [CPU, CPU], progress=False) == [True, True]
 
 
 def _fail_on_shard_one(shard: str, device: torch.device) -> str:

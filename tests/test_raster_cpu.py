@@ -1,13 +1,17 @@
 """The rasterizer's CPU tile layout: the same renders and gradients on any number of threads, the block layout's
-(CUDA's kernels, run on the CPU) within float32 rounding, the dense reference in float64; the thread-count knob and
-the helpers that split CPU launches."""
+(CUDA's kernels, run on the CPU) within float32 rounding, the dense reference in float64; the thread-count and
+freed-memory knobs and the helpers that split CPU launches."""
 
 from __future__ import annotations
+
+import platform
 
 import pytest
 import torch
 
-from codecsplat_warp.device import THREADS_VARIABLE, cpu_threads, set_cpu_threads
+from codecsplat_warp import cli, device
+from codecsplat_warp.device import (FREED_MEMORY_VARIABLE, THREADS_VARIABLE, cpu_threads, freed_memory_wanted,
+                                    set_cpu_threads)
 from codecsplat_warp.errors import InputError
 from codecsplat_warp.ops.primitives import run_concurrently, weighted_chunks
 from codecsplat_warp.kernels.raster_reach import MAX_CONDITIONED, POWER_ROUNDING
@@ -157,3 +161,25 @@ def test_run_concurrently_runs_every_task_and_reraises_after_all_finished(thread
     with pytest.raises(RuntimeError, match="task failed"):
         run_concurrently([fail, *tasks])
     assert sorted(done) == list(range(5))
+
+
+def test_the_command_keeps_freed_memory_unless_its_variable_is_0(threads, monkeypatch):
+    for text, wanted in (("", True), ("1", True), ("0", False), (" 0 ", False)):
+        monkeypatch.setenv(FREED_MEMORY_VARIABLE, text)
+        assert freed_memory_wanted() is wanted
+    monkeypatch.setenv(FREED_MEMORY_VARIABLE, "yes")
+    with pytest.raises(InputError, match=FREED_MEMORY_VARIABLE):
+        freed_memory_wanted()
+    calls = []
+    monkeypatch.setattr(device, "keep_freed_memory", lambda: calls.append(1) or True)
+    monkeypatch.setenv(FREED_MEMORY_VARIABLE, "0")
+    cli._use_threads(None)
+    assert calls == []
+    monkeypatch.delenv(FREED_MEMORY_VARIABLE)
+    cli._use_threads(None)
+    assert calls == [1]
+
+
+def test_keeping_freed_memory_applies_where_the_c_library_is_glibc():
+    glibc = platform.libc_ver()[0] == "glibc"
+    assert device.keep_freed_memory() is glibc and device.freed_memory_kept() is glibc

@@ -36,7 +36,7 @@ from typing import Callable, Sequence
 import torch
 from tqdm.auto import tqdm
 
-from ..device import available_cores, resolve_device, set_cpu_threads
+from ..device import available_cores, freed_memory_kept, keep_freed_memory, resolve_device, set_cpu_threads
 from ..errors import CodecSplatError, DataError, InputError, NoSamplesError, ShardError
 from ..model.pretrained import load_pretrained
 from .evaluate import (BASE_GROUP, EvalConfig, check_config, evaluate, layout_rows, no_samples_error, plan_scenes,
@@ -239,8 +239,8 @@ def _run_processes(task: Callable, shards: list, devices: list[torch.device], th
     try:
         for index, (shard, device) in enumerate(zip(shards, devices)):
             reader, writer = context.Pipe(duplex=False)
-            workers.append(context.Process(target=_worker, args=(task, shard, device, threads, writer),
-                                           name=f"codecsplat-shard-{index}"))
+            arguments = (task, shard, device, threads, freed_memory_kept(), writer)
+            workers.append(context.Process(target=_worker, args=arguments, name=f"codecsplat-shard-{index}"))
             pipes[reader] = index
             workers[-1].start()
             writer.close()  # the worker's end: once the worker ends, its pipe reads end-of-file
@@ -272,13 +272,16 @@ def _run_processes(task: Callable, shards: list, devices: list[torch.device], th
     return [results[index] for index in range(len(shards))]
 
 
-def _worker(task: Callable, shard, device: torch.device, threads: int, pipe) -> None:
-    """A worker process: ``task(shard, device)`` on ``threads`` CPU threads with ``device`` current; sends its
-    progress reports, then its pickled result or error, on ``pipe``."""
+def _worker(task: Callable, shard, device: torch.device, threads: int, keep_memory: bool, pipe) -> None:
+    """A worker process: ``task(shard, device)`` on ``threads`` CPU threads with ``device`` current, keeping the
+    memory it frees when the parent does (``keep_memory``, :func:`~codecsplat_warp.device.keep_freed_memory`);
+    sends its progress reports, then its pickled result or error, on ``pipe``."""
     global _report
     try:
         _end_with_parent()
         set_cpu_threads(threads)
+        if keep_memory:
+            keep_freed_memory()
         if device.type == "cuda":
             torch.cuda.set_device(device)
         _report = lambda done, total: pipe.send(("progress", (done, total)))  # noqa: E731
