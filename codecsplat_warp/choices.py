@@ -23,7 +23,7 @@ DEMO_TARGET_VIEWS = 2
 """Target views ``codecsplat demo`` renders and scores."""
 
 DEMO_RDO_STEPS = 10
-"""Encoder rate-distortion optimisation steps of the demo's extra bitstream at its largest lambda (about 45 s on a
+"""Encoder rate-distortion optimisation steps of the demo's extra bitstream at its largest lambda (about 30 s on a
 2-core CPU for the shipped scene's two views; 0 leaves it out)."""
 
 OUTPUT_BASELINES = ("ply", "png", "feature")
