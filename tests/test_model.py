@@ -10,6 +10,7 @@ from codecsplat_warp.cameras import Cameras
 from codecsplat_warp.data.procedural import ProceduralConfig, procedural_scene
 from codecsplat_warp.errors import DeviceMismatchError, InputError
 from codecsplat_warp.model import CodecSplat, DepthHead, normalized_from_depth
+from codecsplat_warp.model.heads import append_channel
 from codecsplat_warp.nn.config import FEATURE_STRIDE, MODEL_STRIDE, PRESETS, ModelConfig, get_preset
 
 from conftest import DEVICES
@@ -165,3 +166,17 @@ def test_few_steps_on_one_scene_lower_the_loss(scene):
         optimizer.step()
         losses.append(loss.item())
     assert losses[-1] < 0.7 * losses[0], losses
+
+
+def test_append_channel_keeps_a_channels_last_layout_and_the_values_and_gradients_of_cat():
+    for channels_last in (False, True):
+        x = torch.randn(2, 4, 5, 6)
+        if channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        x.requires_grad_()
+        extra = torch.randn(2, 5, 6, requires_grad=True)
+        y = append_channel(x, extra)
+        assert y.is_contiguous(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
+        assert torch.equal(y, torch.cat([x, extra[:, None]], dim=1))
+        y.square().sum().backward()
+        assert torch.equal(x.grad, 2 * x) and torch.equal(extra.grad, 2 * extra)
