@@ -54,7 +54,7 @@ def append_channel(x: torch.Tensor, extra: torch.Tensor) -> torch.Tensor:
     the 2-core EPYC)."""
     extra = extra[:, None].to(x.dtype)
     if not x.is_contiguous() and x.is_contiguous(memory_format=torch.channels_last):
-        V, _, H, W = extra.shape
+        H, W = extra.shape[-2:]
         extra = torch.empty_strided(extra.shape, (H * W, 1, W, 1), dtype=x.dtype, device=x.device).copy_(extra)
     return torch.cat([x, extra], dim=1)
 

@@ -556,7 +556,7 @@ def rdo_loss(model, variables: list[torch.Tensor], target: RDOTarget, config: RD
     if (head.cross_view_weight, head.rate_weight) != (config.cross_view_weight, config.rate_weight):
         raise InputError("rdo_loss needs the RDOTarget that rdo_target made for the same cross-view and rate weights")
     with record_function("loss"):
-        loss, values = target.context_loss(rendered[0], bits.float(), *rendered[1:])
+        loss, values = head(rendered[0], bits.float(), *rendered[1:])
         loss, values = loss.clone(), values.clone()  # a graph's outputs are overwritten by its next replay
     parts = {"mse": values[0], "bpp": values[2]}
     if config.cross_view_weight > 0:
