@@ -264,3 +264,15 @@ def test_plots_draw_a_line_per_curve_on_log_bytes_and_image_codecs_generate_at_t
     assert np.allclose(webp.get_xdata(), [1.02, 1.02])  # decoding + the network on the decoded photographs
     slow = {line.get_label(): line for line in sender.get_lines()}["CodecSplat RDO (slow)"]
     assert list(slow.get_xdata()) == [41.0, 61.0]
+
+
+def test_comparison_titles_wrap_to_their_panel_and_keep_every_word(tmp_path):
+    title = f"{COPY_NEAREST} no bitstream\n0.00 KiB, 16.24 dB"
+    fitted = report.fit_title(title, 256)
+    chars = int(256 / (report.AVERAGE_CHAR_EM * report.TITLE_POINTS / 72 * report.FIGURE_DPI))
+    assert max(len(line) for line in fitted.split("\n")) <= chars < len(title.split("\n")[0])
+    assert fitted.split() == title.split() and fitted.count("\n") > title.count("\n")
+    assert report.fit_title("ground truth", 256) == "ground truth"
+    frames = np.zeros((1, 32, 256, 3), np.uint8)
+    report.plot_comparison([frames, frames], ["ground truth", title], tmp_path / "c.png")
+    assert (tmp_path / "c.png").stat().st_size > 0

@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 import pathlib
 import statistics
+import textwrap
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -17,6 +18,12 @@ CODECSPLAT = "CodecSplat"
 BACKBONE = "CodecSplat w/o codec"
 COPY_NEAREST = "Copy nearest context view"
 IMAGE_CODEC_SUFFIX = " + codec-free"
+FIGURE_DPI = 130
+"""Dots per inch of every written plot (a comparison panel shows its image at about one pixel per pixel)."""
+TITLE_POINTS = 8
+"""Font size of a comparison panel's title."""
+AVERAGE_CHAR_EM = 0.6
+"""The mean width of a title character in ems (DejaVu Sans, mixed case, with spaces), slightly generous."""
 
 
 def rdo_method(name: str) -> str:
@@ -297,13 +304,16 @@ def plot_comparison(columns: list, titles: list[str], path: pathlib.Path, inputs
     """Side-by-side images: ``columns[j]`` is [T,H,W,3] uint8 (one frame per target view, the rows), titled
     ``titles[j]`` above its first row (e.g. ground truth, references, each lambda). ``inputs`` [V,H,W,3] uint8,
     when given, fills a first column of its own, one image per row titled ``input_title`` and its number (e.g. the
-    context photographs that a bitstream encodes). Each panel is shown at about its pixel size (130 dpi)."""
+    context photographs that a bitstream encodes). Each panel is shown at about its pixel size (:data:`FIGURE_DPI`)."""
     views, height, width = columns[0].shape[:3]
     offset = 0 if inputs is None else 1
     rows = max(views, 0 if inputs is None else len(inputs))
-    panel = max(width / 130, 1.6)  # inches: one image pixel per figure pixel, with room for a title
+    panel = max(width / FIGURE_DPI, 1.6)  # inches: one image pixel per figure pixel, with room for a title
+    titles = [fit_title(title, panel * FIGURE_DPI) for title in titles]
+    title_lines = max(title.count("\n") + 1 for title in titles)
     fig, axes = pyplot().subplots(rows, offset + len(columns), squeeze=False,
-                                  figsize=(panel * (offset + len(columns)), panel * rows * height / width + 0.5))
+                                  figsize=(panel * (offset + len(columns)),
+                                           panel * rows * height / width + 0.2 + 0.15 * title_lines))
     for i, row_axes in enumerate(axes):
         for j, ax in enumerate(row_axes):
             ax.set_axis_off()
@@ -313,15 +323,24 @@ def plot_comparison(columns: list, titles: list[str], path: pathlib.Path, inputs
                 frames, title = columns[j - offset], titles[j - offset] if i == 0 else ""
             if i < len(frames):
                 ax.imshow(frames[i])
-                ax.set_title(title, fontsize=8)
+                ax.set_title(title, fontsize=TITLE_POINTS)
     save_figure(fig, path)
+
+
+def fit_title(title: str, width_px: float, points: float = TITLE_POINTS) -> str:
+    """``title`` with each of its lines broken at spaces so that none runs wider than ``width_px`` figure pixels
+    (at :data:`FIGURE_DPI`) in a ``points``-point font: a panel's title that would otherwise run into its
+    neighbour's. The words and their order are kept."""
+    em_px = points / 72 * FIGURE_DPI
+    chars = max(8, int(width_px / (AVERAGE_CHAR_EM * em_px)))
+    return "\n".join(textwrap.fill(line, chars) for line in title.split("\n"))
 
 
 def save_figure(fig, path: pathlib.Path) -> None:
     """Write a matplotlib figure as PNG (atomically) and close it."""
     fig.tight_layout()
     with atomic_output(path) as tmp:
-        fig.savefig(tmp, dpi=130)
+        fig.savefig(tmp, dpi=FIGURE_DPI)
     pyplot().close(fig)
 
 
