@@ -307,10 +307,12 @@ def plot_comparison(columns: list, titles: list[str], path: pathlib.Path, inputs
     context photographs that a bitstream encodes). Each panel is shown at about its pixel size (:data:`FIGURE_DPI`)."""
     views, height, width = columns[0].shape[:3]
     offset = 0 if inputs is None else 1
-    rows = max(views, 0 if inputs is None else len(inputs))
+    input_count = 0 if inputs is None else len(inputs)
+    rows = max(views, input_count)
     panel = max(width / FIGURE_DPI, 1.6)  # inches: one image pixel per figure pixel, with room for a title
     titles = [fit_title(title, panel * FIGURE_DPI) for title in titles]
-    title_lines = max(title.count("\n") + 1 for title in titles)
+    input_titles = [fit_title(f"{input_title} {i + 1}", panel * FIGURE_DPI) for i in range(input_count)]
+    title_lines = max(title.count("\n") + 1 for title in titles + input_titles)
     fig, axes = pyplot().subplots(rows, offset + len(columns), squeeze=False,
                                   figsize=(panel * (offset + len(columns)),
                                            panel * rows * height / width + 0.2 + 0.15 * title_lines))
@@ -318,7 +320,7 @@ def plot_comparison(columns: list, titles: list[str], path: pathlib.Path, inputs
         for j, ax in enumerate(row_axes):
             ax.set_axis_off()
             if j < offset:
-                frames, title = inputs, f"{input_title} {i + 1}"
+                frames, title = inputs, input_titles[i] if i < input_count else ""
             else:
                 frames, title = columns[j - offset], titles[j - offset] if i == 0 else ""
             if i < len(frames):
