@@ -335,16 +335,20 @@ class NoisyQuantizer:
 
     Attributes:
         bits: per level, the estimated bits of each view [V] (float32, differentiable).
+        latents: per level, the posterior means it was given, on the gained grid (differentiable; what
+            semi-amortised training refines, :mod:`train.semi_amortised`).
     """
 
     def __init__(self, generator: torch.Generator | None = None, noise: list[torch.Tensor] | None = None,
                  temperature: torch.Tensor | None = None):
         self.bits: list[torch.Tensor] = []
+        self.latents: list[torch.Tensor] = []
         self.generator = generator
         self.noise = noise
         self.temperature = temperature
 
     def __call__(self, level: int, z, mean, log_scale):
+        self.latents.append(z)
         residual = z.float() - mean.float()
         if self.noise is not None:
             noise = self.noise[level]
@@ -438,10 +442,13 @@ class CodecOutput:
     Attributes:
         feature: F^_c [V,C_F,h,w], the reconstructed feature.
         bits: [V] estimated bits of each view (Eq. 7; noisy in training, the discrete model's otherwise).
+        latents: per level (coarsest first), the posterior means that were quantised, on the gained grid
+            [V,C_l,h_l,w_l], differentiable in training mode.
     """
 
     feature: torch.Tensor
     bits: torch.Tensor
+    latents: list[torch.Tensor]
 
 
 @dataclass
@@ -549,7 +556,8 @@ class LatentCodec(nn.Module):
         encoded = self.analysis(self._pad(feature), emb)
         quantizer = NoisyQuantizer(generator, noise, temperature) if self.training else RoundingQuantizer()
         x = self.top_down(emb, lam, feature.shape[0], latent_shapes(self.config, h, w), encoded, quantizer)
-        return CodecOutput(self.synthesis(x, emb)[..., :h, :w], torch.stack(quantizer.bits).sum(0))
+        return CodecOutput(self.synthesis(x, emb)[..., :h, :w], torch.stack(quantizer.bits).sum(0),
+                           quantizer.latents)
 
     def forward_latents(self, latents: list[torch.Tensor], lam: float, height: int, width: int,
                         generator: torch.Generator | None = None, noise: list[torch.Tensor] | None = None,
@@ -567,7 +575,8 @@ class LatentCodec(nn.Module):
         quantizer = NoisyQuantizer(generator, noise, temperature) if self.training else RoundingQuantizer()
         shapes = latent_shapes(self.config, height, width)
         x = self.top_down(emb, lam, latents[0].shape[0], shapes, None, quantizer, latents)
-        return CodecOutput(self.synthesis(x, emb)[..., :height, :width], torch.stack(quantizer.bits).sum(0))
+        return CodecOutput(self.synthesis(x, emb)[..., :height, :width], torch.stack(quantizer.bits).sum(0),
+                           quantizer.latents)
 
     @torch.no_grad()
     def compress(self, feature: torch.Tensor, lam: float, timer: Timer = no_timer,

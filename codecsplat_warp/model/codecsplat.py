@@ -111,7 +111,8 @@ class CodecSplat(nn.Module):
             ``D_enc`` [V,H,W] (metric, in [near, far]), ``S_enc`` [V,H,W] (Eq. 18, in [0,1]), ``neighbours``
             [V,M] and ``gaussians`` (:class:`Gaussians`, N = V*H*W, float32): codec-free from (F_c, D_enc),
             or with ``lam`` decoded from F^_c; with ``lam`` also ``F_hat`` [V,C_F,H/2,W/2] (F^_c), ``S`` and
-            ``D_hat`` [V,H,W] (decoder depth, Eqs. 9-10) and ``rate_bits`` (scalar, estimated bits of all views);
+            ``D_hat`` [V,H,W] (decoder depth, Eqs. 9-10), ``rate_bits`` (scalar, estimated bits of all views) and
+            ``latents`` (per level, the posterior means on the gained grid that were quantised);
             codec-free in training mode also ``S_aux`` [V,H,W], the depth head's S on the detached F_c.
 
         Raises:
@@ -133,7 +134,8 @@ class CodecSplat(nn.Module):
         self._require_codec()
         coded = self.codec(f_c, lam)
         s, depth, gaussians = self.decode_feature(coded.feature, cameras, enc.neighbours)
-        out.update(F_hat=coded.feature, S=s, D_hat=depth, rate_bits=coded.bits.sum(), gaussians=gaussians)
+        out.update(F_hat=coded.feature, S=s, D_hat=depth, rate_bits=coded.bits.sum(), gaussians=gaussians,
+                   latents=coded.latents)
         return out
 
     def decode_feature(self, feature: torch.Tensor, cameras: Cameras,
