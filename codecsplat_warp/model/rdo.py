@@ -361,23 +361,36 @@ def context_loss(images: torch.Tensor, lam: float, config: RDOConfig, graphed: b
         return loss
 
 
-@torch.no_grad()
 def rdo_target(model, images: torch.Tensor, cameras: Cameras, lam: float, start: CompressedLatents,
                config: RDOConfig, perceptual: torch.nn.Module | None = None) -> RDOTarget:
-    """The fixed inputs of a run from the context views and the amortised coding ``start`` (with its feature).
+    """The fixed inputs of a run from the context views and the amortised coding ``start`` (with its feature):
+    :func:`latent_target` of its latents and feature.
 
     ``perceptual``: a network with LPIPS' ``unit_features(images)`` and ``distance(x_units, y_units)`` (e.g.
     :class:`codecsplat_warp.metrics.LPIPS`), needed when ``config.perceptual_weight`` > 0 (InputError otherwise).
     """
+    return latent_target(model, images, cameras, lam, start.latents, config, perceptual, start.feature)
+
+
+@torch.no_grad()
+def latent_target(model, images: torch.Tensor, cameras: Cameras, lam: float, latents: list[torch.Tensor],
+                  config: RDOConfig, perceptual: torch.nn.Module | None = None,
+                  feature: torch.Tensor | None = None) -> RDOTarget:
+    """The fixed inputs of a run from the context ``images`` [V,3,H,W] and ``cameras`` and the amortised
+    ``latents`` (per level, on the gained grid; detached here), with the decoder's feature F^_c of them
+    (``feature``, [V,C_F,H/2,W/2]) where the depth term needs it (InputError when it is missing then).
+    ``perceptual``: see :func:`rdo_target`."""
     if config.perceptual_weight > 0 and perceptual is None:
         raise InputError("RDO with a perceptual weight needs the perceptual network (e.g. codecsplat_warp.metrics."
                          "LPIPS('vgg')): pass perceptual=")
-    s_start = model.depth_head(start.feature.float(), cameras)[0] if config.depth_weight > 0 else None
+    if config.depth_weight > 0 and feature is None:
+        raise InputError("RDO with a depth weight needs the amortised coding's decoder feature: pass feature=")
+    s_start = model.depth_head(feature.float(), cameras)[0] if config.depth_weight > 0 else None
     graphed = uses_cuda_graphs(config, images.device)
     distance = (perceptual_distance(perceptual, perceptual.unit_features(images), images, graphed)
                 if config.perceptual_weight > 0 else None)
     return RDOTarget(images, cameras, lam, context_neighbours(cameras, model.config.neighbours),
-                     render_depth_range(cameras), [z.detach() for z in start.latents], s_start, distance,
+                     render_depth_range(cameras), [z.detach() for z in latents], s_start, distance,
                      context_loss(images, lam, config, graphed))
 
 
@@ -795,23 +808,62 @@ def latent_optimiser(variables: list[torch.Tensor], config: RDOConfig) -> torch.
 
 def rdo_step(model, variables: list[torch.Tensor], optimiser: torch.optim.Optimizer, target: RDOTarget,
              config: RDOConfig, generator: torch.Generator | None, decoder: GraphedDecoder | None = None,
-             temperature: float | None = None) -> None:
+             temperature: float | None = None) -> dict:
     """One optimisation step of the optimised tensors ``variables`` in place (training quantiser; no host
-    synchronisation of its own): loss, backward, non-finite gradients zeroed, Adam, clamp to
-    +-:data:`LATENT_LIMIT`. ``decoder``: see :func:`step_decoder`; ``temperature``: see :func:`rdo_loss`. The
-    model is put in training mode unless it is in it already (the optimisation sets modes on the whole model only;
-    a call of ``train()`` walks all its 295 modules)."""
+    synchronisation of its own): loss, its gradient to ``variables`` alone, non-finite gradients zeroed, Adam,
+    clamp to +-:data:`LATENT_LIMIT`. Returns the loss's parts before the step (:func:`rdo_loss`, detached 0-dim
+    tensors). ``decoder``: see :func:`step_decoder`; ``temperature``: see :func:`rdo_loss`. The model is put in
+    training mode unless it is in it already (the optimisation sets modes on the whole model only; a call of
+    ``train()`` walks all its 295 modules). No gradient reaches the model's parameters, frozen or not: training
+    runs these steps inside its own step (:func:`refine_latents`)."""
     if not model.training:
         model.train()
-    optimiser.zero_grad(set_to_none=True)
-    loss, _ = rdo_loss(model, variables, target, config, generator, decoder=decoder, temperature=temperature)
-    loss.backward()
+    loss, parts = rdo_loss(model, variables, target, config, generator, decoder=decoder, temperature=temperature)
+    grads = torch.autograd.grad(loss, variables)
     with record_function("optimiser"), torch.no_grad():
-        for v in variables:
-            torch.nan_to_num_(v.grad, nan=0.0, posinf=0.0, neginf=0.0)
+        for v, g in zip(variables, grads):
+            v.grad = torch.nan_to_num_(g, nan=0.0, posinf=0.0, neginf=0.0)
         optimiser.step()
         for v in variables:
             v.clamp_(-LATENT_LIMIT, LATENT_LIMIT)
+    return {name: value.detach() for name, value in parts.items()}
+
+
+@dataclass
+class Refinement:
+    """What :func:`refine_latents` returns: the refined ``latents`` (per level, detached, float32) and the
+    loss's parts (:func:`rdo_loss`, detached 0-dim tensors) at the ``first`` and the ``last`` step (before each
+    step's update; both None after 0 steps)."""
+
+    latents: list[torch.Tensor]
+    first: dict | None
+    last: dict | None
+
+
+def refine_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, latents: list[torch.Tensor],
+                   config: RDOConfig, generator: torch.Generator | None = None) -> Refinement:
+    """``config.steps`` steps of the encoder's optimisation (:func:`rdo_step`, the presets' loss, learning-rate
+    schedule and quantiser) from ``latents`` (per level, on the gained grid), without real codings or checks:
+    what semi-amortised training runs inside each of its steps (:mod:`train.semi_amortised`), on the model as it
+    is (its parameters may require gradients; none reaches them). ``config`` must have a step count and
+    ``variable="latents"``; ``images`` [V,3,H,W] float32 in [0,1], ``cameras`` the V context cameras."""
+    if config.steps is None or config.variable != "latents":
+        raise InputError("refine_latents needs a step count and variable='latents'")
+    variables = [z.detach().float().clone().requires_grad_(True) for z in latents]
+    if config.steps == 0:
+        return Refinement([v.detach() for v in variables], None, None)
+    target = latent_target(model, images, cameras, lam, latents, config)
+    optimiser = latent_optimiser(variables, config)
+    first_lr = optimiser.param_groups[0]["lr"]
+    first = last = None
+    with validation(False):
+        for step in range(config.steps):
+            for group in optimiser.param_groups:
+                group["lr"] = _learning_rate(config, first_lr, step, 0.0)
+            last = rdo_step(model, variables, optimiser, target, config, generator,
+                            temperature=annealing_temperature(config, step, 0.0))
+            first = first or last
+    return Refinement([v.detach() for v in variables], first, last)
 
 
 def _check(model, variables: list[torch.Tensor], target: RDOTarget, config: RDOConfig, step: int,
