@@ -152,13 +152,25 @@ def stage2_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBatch, conf
 
     ``model`` may be the DDP wrapper; rendering and the coded-rate check use the bare module.
     """
+    lam = step_lambda(config, step)
+    images = batch.context_images
+    with torch.autocast(images.device.type, dtype=torch.bfloat16, enabled=images.device.type == "cuda"):
+        out = model(images, batch.context_cameras, lam=lam, scenes=batch.scenes)
+    return codec_loss(model, lpips, batch, config, step, lam, out)
+
+
+def step_lambda(config: Stage2Config, step: int) -> float:
+    """The step's lambda (:func:`sample_lambda` of the seed, the step and this process's DDP rank)."""
+    return sample_lambda(config.seed, step, dist.get_rank() if dist.is_initialized() else 0)
+
+
+def codec_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBatch, config: Stage2Config, step: int,
+               lam: float, out: dict) -> tuple[torch.Tensor, dict]:
+    """The loss of :func:`stage2_loss` from the codec path's outputs ``out`` (:meth:`CodecSplat.forward` with
+    ``lam``: ``gaussians``, ``S``, ``S_enc``, ``D_hat``, ``F_c``, ``F_hat``, ``rate_bits``), whichever latents
+    they were decoded from (semi-amortised training decodes refined ones, :mod:`train.semi_amortised`)."""
     bare = model.module if hasattr(model, "module") else model
-    rank = dist.get_rank() if dist.is_initialized() else 0
-    lam = sample_lambda(config.seed, step, rank)
-    images, cameras = batch.context_images, batch.context_cameras
-    device = images.device
-    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda"):
-        out = model(images, cameras, lam=lam, scenes=batch.scenes)
+    images = batch.context_images
     parts = stage1.render_distortion(stage1.render_targets(bare, out["gaussians"], batch), batch.target_images,
                                      lpips, config.lpips_weight)
     depth_l1 = (out["S"].float() - out["S_enc"].detach().float()).abs().mean()
