@@ -1,0 +1,140 @@
+"""Semi-amortised training (train.semi_amortised): the encoder's optimisation inside each step, first-order
+gradients into the decoder, the inner loop's metrics, resumption; on the tiny preset and procedural scenes."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from conftest import LPIPS_WEIGHTS as WEIGHTS
+from conftest import needs_lpips
+
+from codecsplat_warp.errors import DataError, InputError
+from codecsplat_warp.metrics import LPIPS
+from codecsplat_warp.model import CodecSplat
+from codecsplat_warp.model.pretrained import save_pretrained
+from codecsplat_warp.model.rdo import rdo_config, refine_latents, rdo_loss, latent_target
+from codecsplat_warp.nn.config import FEATURE_STRIDE, get_preset
+from train.checkpoint import latest_checkpoint, load_model_weights
+from train.data import DataSpec, make_source
+from train.semi_amortised import (INNER_LOGGED, SemiAmortisedConfig, build_model, draw_inner_steps, parse_args,
+                                  run_model_config, semi_amortised_loss, train)
+from train.stage1 import METRICS_FILE
+
+TINY = get_preset("tiny")
+
+
+def _model_file(path) -> CodecSplat:
+    torch.manual_seed(5)
+    model = CodecSplat(TINY, codec=True)
+    save_pretrained(model, path)
+    return model
+
+
+def _batch(seed: int = 3):
+    return make_source("procedural", DataSpec(views=(2,), sizes=((32, 48),), targets=1), seed=seed)(0)
+
+
+def test_the_model_starts_from_the_init_file_with_only_the_named_modules_trainable(tmp_path):
+    """Would catch: a start from other weights, or frozen modules that train (or the reverse)."""
+    start = _model_file(tmp_path / "m.safetensors")
+    config = SemiAmortisedConfig(init=str(tmp_path / "m.safetensors"), out=str(tmp_path / "run"),
+                                 train_modules="codec,gs_head")
+    assert run_model_config(config) == TINY
+    model = build_model(TINY, config)
+    for name, value in start.state_dict().items():
+        assert torch.equal(model.state_dict()[name], value), name
+    assert {n.split(".")[0] for n, p in model.named_parameters() if p.requires_grad} == {"codec", "gs_head"}
+    with pytest.raises(InputError, match="not a module"):
+        build_model(TINY, SemiAmortisedConfig(init=str(tmp_path / "m.safetensors"), out=str(tmp_path / "r2"),
+                                              train_modules="codec,nothing"))
+    (tmp_path / "bad.safetensors").write_bytes(b"not a model")
+    with pytest.raises(DataError, match="not a CodecSplat model file"):
+        run_model_config(SemiAmortisedConfig(init=str(tmp_path / "bad.safetensors"), out=str(tmp_path / "r3")))
+
+
+def test_inner_step_counts_are_drawn_reproducibly_from_the_list_and_bad_options_fail():
+    """Would catch: a draw that ignores the list or is not a function of (seed, step, rank, scene)."""
+    counts = [0, 4, 9]
+    drawn = [draw_inner_steps(counts, 1, step, 0, 0) for step in range(60)]
+    assert set(drawn) == set(counts) and drawn == [draw_inner_steps(counts, 1, s, 0, 0) for s in range(60)]
+    assert drawn != [draw_inner_steps(counts, 2, s, 0, 0) for s in range(60)]
+    for argv, match in ((["--inner-steps", "3,-1"], "inner-steps"), (["--inner-steps", "a"], "inner-steps"),
+                        (["--inner-preset", "fast"], "inner-preset"), (["--inner-precision", "fp8"], "precision")):
+        with pytest.raises(InputError, match=match):
+            parse_args(argv)
+
+
+def test_refine_latents_lowers_the_context_loss_and_leaves_the_parameters_without_gradient(tmp_path):
+    """The inner loop is the presets' optimisation: its loss falls over the steps, the latents move, and no
+    gradient reaches the model's parameters even where they require one (training's case).
+    Would catch: an inner loop that accumulates into the weights' gradients (which DDP would all-reduce)."""
+    model = _model_file(tmp_path / "m.safetensors").train()
+    batch = _batch()
+    images, cameras = batch.context_images, batch.context_cameras
+    with torch.no_grad():
+        latents = model(images, cameras, lam=1024.0)["latents"]
+    config = rdo_config("medium", steps=6, views=2, cuda_graphs=False, check_every=0)
+    generator = torch.Generator().manual_seed(0)
+    result = refine_latents(model, images, cameras, 1024.0, latents, config, generator)
+    assert all(p.grad is None for p in model.parameters())
+    assert any(not torch.equal(a, b) for a, b in zip(result.latents, latents))
+    target = latent_target(model, images, cameras, 1024.0, latents, config)
+    with torch.no_grad():
+        before = float(rdo_loss(model, [z.clone() for z in latents], target, config,
+                                torch.Generator().manual_seed(1))[0])
+        after = float(rdo_loss(model, result.latents, target, config, torch.Generator().manual_seed(1))[0])
+    assert after < before
+    assert float(result.last["mse"]) < float(result.first["mse"])
+    unchanged = refine_latents(model, images, cameras, 1024.0, latents, rdo_config("medium", steps=0, views=2))
+    assert unchanged.first is None and all(torch.equal(a, b) for a, b in zip(unchanged.latents, latents))
+
+
+@needs_lpips
+def test_the_loss_decodes_the_refined_latents_and_its_gradient_reaches_decoder_and_encoder(tmp_path):
+    """With K inner steps the loss is taken on the decode of the refined latents (another value than K = 0's
+    with the same noise), the gradient reaches the decoder and, first-order, the codec's analysis and
+    posterior, and the inner loop's metrics are there. Would catch: a loss on the amortised decode, or a
+    straight-through that cuts the encoder off."""
+    _model_file(tmp_path / "m.safetensors")
+    config = SemiAmortisedConfig(init=str(tmp_path / "m.safetensors"), out=str(tmp_path / "run"))
+    model = build_model(TINY, config).train()
+    lpips = LPIPS(weights_dir=WEIGHTS)
+    batch = _batch()
+    losses = {}
+    for steps in ("0", "4"):
+        torch.manual_seed(0)
+        model.zero_grad(set_to_none=True)
+        loss, metrics = semi_amortised_loss(model, lpips, batch, SemiAmortisedConfig(inner_steps=steps), step=4)
+        loss.backward()
+        losses[steps] = float(loss.detach())
+        assert set(INNER_LOGGED) <= set(metrics)
+        for part in ("codec.analysis", "codec.top_down", "codec.synthesis", "depth_head", "refine_post"):
+            reached = [p.grad for n, p in model.named_parameters() if n.startswith(part) and p.grad is not None]
+            assert reached and any(float(g.abs().sum()) > 0 for g in reached), (steps, part)
+    assert metrics["inner_steps"] == 4.0 and float(metrics["context_gain"]) > 0
+    assert losses["4"] != pytest.approx(losses["0"], rel=1e-6)
+
+
+@needs_lpips
+def test_a_resumed_run_gives_the_same_next_step_loss_and_logs_the_inner_loop(tmp_path):
+    """Checkpoints carry the run across interruptions: two steps, resumed to three, match three straight.
+    Would catch: an inner loop drawn from state that a checkpoint does not carry."""
+    start = _model_file(tmp_path / "m.safetensors")
+    common = dict(init=str(tmp_path / "m.safetensors"), data="procedural", device="cpu", workers=0,
+                  warmup_steps=10, lpips_weights=str(WEIGHTS), checkpoint_every=2, log_every=1, seed=3,
+                  coded_every=100, inner_steps="0,2")
+    train(SemiAmortisedConfig(out=str(tmp_path / "a"), steps=2, **common), progress=False)
+    resumed = train(SemiAmortisedConfig(out=str(tmp_path / "a"), steps=3, **common), progress=False)
+    direct = train(SemiAmortisedConfig(out=str(tmp_path / "b"), steps=3, **common), progress=False)
+    assert (resumed["resumed_from"], resumed["step"]) == (2, 3)
+    assert resumed["loss"] == pytest.approx(direct["loss"], rel=1e-5)
+    records = [json.loads(line) for line in (tmp_path / "a" / METRICS_FILE).read_text().splitlines()]
+    assert [r["step"] for r in records] == [1, 2, 3]
+    assert all(set(INNER_LOGGED) <= set(r) for r in records)
+    trained = CodecSplat(TINY, codec=True)
+    load_model_weights(latest_checkpoint(tmp_path / "a"), trained)
+    for name, value in start.state_dict().items():
+        if name.split(".")[0] not in ("codec", "depth_head", "refine_post"):
+            assert torch.equal(trained.state_dict()[name], value), f"frozen {name} changed"

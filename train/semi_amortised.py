@@ -1,0 +1,278 @@
+"""Semi-amortised training: the encoder's optimisation inside every training step, the target views in the loss.
+
+At test time the encoder presets ``medium`` and ``slow`` move the amortised latents by Adam steps on the context
+views alone (:mod:`codecsplat_warp.model.rdo`). The oracle of docs/benchmarks.md shows that latents which render
+the target views far better exist, but that fitting the photographs does not find them. This stage trains the model
+for the encoder that optimises (as semi-amortised VAEs, Kim et al. 2018, train through the inference that runs at
+test time): per step and scene,
+
+1. the amortised encoder and codec give the latents ``z`` (:meth:`CodecSplat.forward` with a lambda, as stage 2);
+2. ``K`` steps of the encoder's own optimisation run on the context views from ``z``
+   (:func:`codecsplat_warp.model.rdo.refine_latents`: the presets' loss, learning-rate schedule and quantiser, the
+   preset ``--inner-preset`` with its step count set to ``K``), ``K`` drawn per step from ``--inner-steps`` so that
+   one model serves every preset, ``fast`` (``K = 0``) included;
+3. the decoder decodes the refined latents ``z_K`` and the stage-2 loss is taken on the *target* views
+   (:func:`train.stage2.codec_loss`: render distortion, depth, feature and rate terms).
+
+The gradient is first-order through the inner loop: the refined latents enter the decoder as
+``z + stop_gradient(z_K - z)``, so the decoder (codec top-down pass and synthesis, depth head, R_post; the modules of
+``--train-modules``) learns to render the targets from the latents the optimisation reaches, and the amortised
+encoder's analysis and posterior receive the decoder's gradient at ``z_K`` as if it were at ``z``. The optimisation
+pays for its bytes: the rate term is the refined latents' estimated bits. A model trained so decodes with the
+same decoder code and bitstream format, but its weights change: it gets a new model id.
+
+Besides stage 2's metrics the log holds the inner loop's figures (:data:`INNER_LOGGED`): the step count ``K``, the
+context views' PSNR gain over the ``K`` steps (of the loss's noisy-quantiser renders, first step against last), the
+target views' PSNR gain of the refined decode over the amortised one, and inner steps per second.
+
+Everything else (data, batches, checkpoints every ``--checkpoint-every`` steps and on SIGTERM or
+``--time-limit-s``, resumption from ``--out``, DDP under torchrun, TensorBoard, metrics.jsonl) is stage 1's loop
+(:func:`train.stage1.train`)::
+
+    torchrun --nproc_per_node 4 -m train.semi_amortised --data runs/scenes-256 --holdout ... \\
+        --inner-steps 0,8,16,25 --steps 4000 --lr 2e-5 --out runs/semi
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import time
+from dataclasses import dataclass
+
+import torch
+import torch.distributed as dist
+from safetensors import safe_open
+
+from codecsplat_warp.errors import DataError, InputError
+from codecsplat_warp.metrics import LPIPS
+from codecsplat_warp.metrics.image import psnr
+from codecsplat_warp.model import CodecSplat
+from codecsplat_warp.model.pretrained import DEFAULT_CHECKPOINT
+from codecsplat_warp.model.rdo import PRESETS, refine_latents, rdo_config
+from codecsplat_warp.nn.config import FEATURE_STRIDE, ModelConfig
+
+from . import stage1, stage2
+from .checkpoint import latest_checkpoint, read_weights
+from .data import BatchSource, TrainingBatch
+
+INNER_LOGGED = ("inner_steps", "context_gain", "target_gain", "target_psnr_amortised", "inner_steps_per_s")
+"""The inner loop's metrics, logged beside stage 2's: ``K``; the context views' PSNR gain over the ``K`` steps
+(dB; 0 when ``K`` is 0); the targets' PSNR of the refined decode minus the amortised decode's (dB); the amortised
+decode's target PSNR (dB); inner steps per second (0 when ``K`` is 0)."""
+
+LOGGED = stage2.LOGGED + INNER_LOGGED
+
+DEFAULT_TRAIN_MODULES = "codec,depth_head,refine_post"
+"""The modules trained by default: stage 2's (the codec, the decoder depth head and R_post)."""
+
+
+@dataclass
+class SemiAmortisedConfig(stage2.Stage2Config):
+    """Options: stage 2's (:class:`train.stage2.Stage2Config`) plus the inner loop's; ``init`` names the whole
+    model to start from (a model file or a run folder), not a stage-1 run, and ``codec_init``,
+    ``codec_latent_channels``, ``codec_finest_stride`` and ``trainable`` are not used."""
+
+    out: str = "runs/semi"
+    steps: int = 4000
+    init: str = str(DEFAULT_CHECKPOINT)
+    lr: float = 2e-5
+    warmup_steps: int = 100
+    rate_warmup_steps: int = 0
+    beta: float | None = 1.3e-3
+    inner_steps: str = "0,8,16,25"
+    inner_preset: str = "medium"
+    inner_precision: str = "float32"
+    train_modules: str = DEFAULT_TRAIN_MODULES
+
+
+OPTION_HELP = {
+    **stage2.OPTION_HELP,
+    "init": "the model to start from: a model file (default: the shipped model) or a run folder of this stage",
+    "inner_steps": "comma list of inner optimisation step counts K, one drawn per step and scene (0: the "
+                   "amortised latents, the fast preset); list one twice to draw it twice as often",
+    "inner_preset": "the encoder preset whose optimisation runs inside each step (medium or slow; its loss, "
+                    "learning rate and cross-view term, with K steps)",
+    "inner_precision": "precision of the inner optimisation's networks: float32 (as the presets) or bfloat16",
+    "train_modules": "comma list of the model's modules that train (codec, depth_head, refine_post, gs_head, "
+                     "refine_pre, feat_head, mvenc)",
+    "codec_init": "not used by this stage",
+    "codec_latent_channels": "not used by this stage",
+    "codec_finest_stride": "not used by this stage",
+    "trainable": "not used by this stage (see --train-modules)",
+}
+"""``--help`` text of every :class:`SemiAmortisedConfig` field."""
+
+
+def parse_inner_steps(text: str) -> list[int]:
+    """``"0,8,16,25"`` -> [0, 8, 16, 25]; InputError unless every entry is an integer >= 0."""
+    try:
+        counts = [int(k) for k in text.split(",") if k.strip()]
+    except ValueError:
+        raise InputError(f"--inner-steps must be a comma list of integers >= 0, got {text!r}") from None
+    if not counts or any(k < 0 for k in counts):
+        raise InputError(f"--inner-steps must be a comma list of integers >= 0, got {text!r}")
+    return counts
+
+
+def draw_inner_steps(counts: list[int], seed: int, step: int, rank: int, scene: int) -> int:
+    """The inner step count of one scene of a step: one of ``counts``, a function of (seed, step, rank, scene)."""
+    generator = torch.Generator().manual_seed(((seed * 1_000_003 + step) * 1009 + rank) * 101 + scene + 7)
+    return counts[int(torch.randint(len(counts), (), generator=generator))]
+
+
+def semi_amortised_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBatch, config: SemiAmortisedConfig,
+                        step: int) -> tuple[torch.Tensor, dict]:
+    """The stage-2 loss on the target views of the latents refined by ``K`` inner steps (see the module
+    docstring); returns (loss, metrics as floats or detached 0-dim tensors). ``model`` may be the DDP wrapper."""
+    bare = model.module if hasattr(model, "module") else model
+    lam = stage2.step_lambda(config, step)
+    images, cameras = batch.context_images, batch.context_cameras
+    with torch.autocast(images.device.type, dtype=torch.bfloat16, enabled=images.device.type == "cuda"):
+        out = model(images, cameras, lam=lam, scenes=batch.scenes)
+    refined, inner = refine_scenes(bare, batch, lam, out["latents"], config, step)
+    if inner["inner_steps"] > 0:
+        amortised_gaussians = out["gaussians"]
+        out = {**out, **decode_refined(bare, cameras, lam, out, refined)}
+        with torch.no_grad():
+            inner["target_psnr_amortised"] = psnr(stage1.render_targets(bare, amortised_gaussians, batch),
+                                                  batch.target_images).mean()
+    loss, metrics = stage2.codec_loss(model, lpips, batch, config, step, lam, out)
+    if inner["inner_steps"] > 0:
+        inner["target_gain"] = metrics["psnr"] - inner["target_psnr_amortised"]
+    else:
+        inner["target_psnr_amortised"] = metrics["psnr"]
+    return loss, {**metrics, **inner}
+
+
+def refine_scenes(model: CodecSplat, batch: TrainingBatch, lam: float, latents: list[torch.Tensor],
+                  config: SemiAmortisedConfig, step: int) -> tuple[list[torch.Tensor], dict]:
+    """Each scene of ``batch`` refined by its drawn ``K`` inner steps from its slice of ``latents`` (per level,
+    [S*V,C_l,h_l,w_l], scene-major); returns the refined latents (detached, the same shapes) and the inner loop's
+    metrics (:data:`INNER_LOGGED`, the mean over the scenes; ``inner_steps`` a float)."""
+    rank = dist.get_rank() if dist.is_initialized() else 0
+    counts = parse_inner_steps(config.inner_steps)
+    views = batch.context_images.shape[0] // batch.scenes
+    device = batch.context_images.device
+    refined, drawn, gains, seconds = [], [], [], 0.0
+    for scene, cameras in enumerate(batch.scene_contexts()):
+        rows = slice(scene * views, (scene + 1) * views)
+        steps = draw_inner_steps(counts, config.seed, step, rank, scene)
+        rdo = rdo_config(config.inner_preset, steps=steps, views=views, precision=config.inner_precision,
+                         cuda_graphs=False, check_every=0)
+        generator = torch.Generator(device=device).manual_seed(config.seed * 1_000_003 + step * 101 + scene)
+        _synchronize(device)
+        began = time.perf_counter()
+        result = refine_latents(model, batch.context_images[rows].float(), cameras.to(dtype=torch.float32), lam,
+                                [z[rows] for z in latents], rdo, generator)
+        _synchronize(device)
+        seconds += time.perf_counter() - began
+        refined.append(result.latents)
+        drawn.append(steps)
+        if result.first is not None:
+            gains.append(_psnr_of(result.last["mse"]) - _psnr_of(result.first["mse"]))
+    total = sum(drawn)
+    metrics = {"inner_steps": total / len(drawn),
+               "context_gain": torch.stack(gains).mean() if gains else 0.0,
+               "target_gain": 0.0, "target_psnr_amortised": 0.0,
+               "inner_steps_per_s": total / seconds if total else 0.0}
+    return [torch.cat(level) for level in zip(*refined)], metrics
+
+
+def decode_refined(model: CodecSplat, cameras, lam: float, out: dict, refined: list[torch.Tensor]) -> dict:
+    """The codec path's outputs from the refined latents, first-order: they enter the decoder as ``z +
+    stop_gradient(refined - z)`` with ``z`` the amortised ``out["latents"]``; returns ``F_hat``, ``S``,
+    ``D_hat``, ``rate_bits`` and ``gaussians`` to replace ``out``'s."""
+    straight = [z + (r.to(z.dtype) - z).detach() for z, r in zip(out["latents"], refined)]
+    device = straight[0].device
+    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda"):
+        coded = model.codec.forward_latents(straight, lam, cameras.height // FEATURE_STRIDE,
+                                            cameras.width // FEATURE_STRIDE)
+        s, depth, gaussians = model.decode_feature(coded.feature, cameras, out["neighbours"])
+    return {"F_hat": coded.feature, "S": s, "D_hat": depth, "rate_bits": coded.bits.sum(), "gaussians": gaussians}
+
+
+def _psnr_of(mse: torch.Tensor) -> torch.Tensor:
+    return -10.0 * torch.log10(mse.float().clamp_min(1e-12))
+
+
+def _synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def build_model(model_config: ModelConfig, config: SemiAmortisedConfig) -> CodecSplat:
+    """The whole model from ``config.init`` (unless ``config.out`` has a checkpoint to resume), with only the
+    modules of ``config.train_modules`` trainable. Raises InputError for an unknown module name and DataError
+    when ``config.init`` does not hold this model's weights."""
+    model = CodecSplat(model_config, codec=True)
+    if latest_checkpoint(config.out) is None:
+        try:
+            model.load_state_dict(read_weights(config.init))
+        except RuntimeError as exc:
+            raise DataError(f"--init {config.init} does not hold a CodecSplat of the sizes in its config: {exc}") \
+                from None
+    model.requires_grad_(False)
+    for name in config.train_modules.split(","):
+        module = getattr(model, name.strip(), None) if name.strip() else None
+        if not isinstance(module, torch.nn.Module):
+            raise InputError(f"--train-modules {name!r} is not a module of the model")
+        module.requires_grad_(True)
+    if model.mvenc.mono_backbone is not None:
+        model.mvenc.mono_backbone.requires_grad_(False)
+    return model
+
+
+def run_model_config(config: SemiAmortisedConfig) -> ModelConfig:
+    """The network sizes: from ``config.out`` when resuming, else from ``config.init`` (a run folder's
+    config.json, or a model file's metadata)."""
+    for run in (config.out, config.init):
+        file = pathlib.Path(run) / "config.json"
+        if run and file.is_file():
+            return ModelConfig.from_dict(json.loads(file.read_text())["model"])
+    path = pathlib.Path(config.init)
+    if not path.is_file():
+        raise InputError(f"--init must name a model file or a run folder, got {config.init!r}")
+    try:
+        with safe_open(str(path), "pt") as f:
+            metadata = f.metadata() or {}
+        return ModelConfig.from_dict(json.loads(metadata["config"]))
+    except Exception as exc:  # safetensors raises its own error types for a bad header
+        raise DataError(f"--init {path}: not a CodecSplat model file ({exc})") from None
+
+
+STAGE = stage1.Stage("semi", build_model, semi_amortised_loss, LOGGED)
+
+
+def train(config: SemiAmortisedConfig, source: BatchSource | None = None, progress: bool = True) -> dict:
+    """Run (or resume) semi-amortised training until ``config.steps``; see :func:`train.stage1.train`."""
+    return stage1.train(config, source, run_model_config(config), progress, stage=STAGE)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line: :class:`SemiAmortisedConfig`'s fields as flags."""
+    return stage1.build_parser(SemiAmortisedConfig, OPTION_HELP, "python -m train.semi_amortised",
+                               __doc__.split("\n\n")[0])
+
+
+def parse_args(argv: list[str] | None = None) -> SemiAmortisedConfig:
+    """Command line -> :class:`SemiAmortisedConfig`; InputError for a bad inner-loop option."""
+    config = stage1.parse_args(argv, SemiAmortisedConfig, build_parser())
+    parse_inner_steps(config.inner_steps)
+    if config.inner_preset not in PRESETS or config.inner_preset == "fast":
+        raise InputError(f"--inner-preset must be an optimising preset ({', '.join(p for p in PRESETS if p != 'fast')}), "
+                         f"got {config.inner_preset!r}")
+    if config.inner_precision not in ("float32", "bfloat16"):
+        raise InputError(f"--inner-precision must be float32 or bfloat16, got {config.inner_precision!r}")
+    if config.coded_every < 1:
+        raise InputError("--coded-every must be >= 1")
+    return config
+
+
+def main(argv: list[str] | None = None) -> None:
+    stage1.print_final_metrics(train(parse_args(argv)))
+
+
+if __name__ == "__main__":
+    main()
