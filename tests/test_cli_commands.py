@@ -249,7 +249,7 @@ def test_ctrl_c_during_rdo_writes_the_best_bitstream_so_far(workspace, monkeypat
             raise KeyboardInterrupt
         return real_step(*args, **kwargs)
 
-    monkeypatch.setattr(rdo, "rdo_step", interrupted)
+    monkeypatch.setattr(rdo.loop, "rdo_step", interrupted)  # where the loop looks it up
     out = workspace / "interrupted.csplat"
     args = ["encode", "scenes/a", "--views", "0,5", "--preset", "slow", "-o", str(out), "--device", "cpu", "--json",
             "--checkpoint", str(workspace / "tiny.safetensors")]

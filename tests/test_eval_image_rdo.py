@@ -110,7 +110,7 @@ def test_perceptual_rdo_rows_optimise_with_the_lpips_vgg_term(scenes, model, mon
         terms.append("perceptual" in parts)
         return value, parts
 
-    monkeypatch.setattr(rdo_module, "rdo_loss", spy)
+    monkeypatch.setattr(rdo_module.loop, "rdo_loss", spy)  # where the loop looks it up
     rows = evaluator.run(sample, groups={s.group(64.0) for s in settings})
     assert [r.method for r in rows] == ["CodecSplat RDO (1 step)", "CodecSplat RDO (1 step, LPIPS 0.5)"]
     # each run: the start measured, one step, the end measured; only the second with the perceptual term

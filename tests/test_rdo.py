@@ -100,7 +100,7 @@ def test_a_keyboard_interrupt_keeps_the_best_latents_so_far(monkeypatch):
                 raise KeyboardInterrupt
         return real_loss(*args, **kwargs)
 
-    monkeypatch.setattr(rdo, "rdo_loss", interrupting)
+    monkeypatch.setattr(rdo.loop, "rdo_loss", interrupting)  # where the loop looks it up
     encoded = model.encode_scene(images, cameras, LAM, steps=50)
     assert encoded.rdo.stopped == "interrupted" and encoded.rdo.steps == 3
     assert [c.step for c in encoded.rdo.checks] == [0, 3]
@@ -118,7 +118,7 @@ def test_non_finite_gradients_leave_the_latents_finite_and_the_bitstream_decodab
             loss = loss + (latents[0] * float("nan")).sum()
         return loss, parts
 
-    monkeypatch.setattr(rdo, "rdo_loss", poisoned)
+    monkeypatch.setattr(rdo.loop, "rdo_loss", poisoned)
     encoded = model.encode_scene(images, cameras, LAM, steps=4)
     assert encoded.rdo.steps == 4 and all(math.isfinite(c.loss) for c in encoded.rdo.checks)
     model.decode(encoded.data)
