@@ -23,6 +23,19 @@ DEVICES = [
 """Parametrise a test over every device: ``@pytest.mark.parametrize("device", DEVICES)``."""
 
 
+def _warp_compiles_cpu_kernels() -> bool:
+    import warp as wp
+
+    return wp.is_cpu_available()
+
+
+needs_warp_cpu = pytest.mark.skipif(
+    not _warp_compiles_cpu_kernels(),
+    reason="this Warp cannot compile CPU kernels (no warp-clang library, as in the GPU machines' kit); the test "
+           "runs Warp kernels on the CPU beside CUDA")
+"""Mark a CUDA test that also runs Warp kernels on the CPU (a CUDA bitstream decoded on the CPU, say)."""
+
+
 @pytest.fixture(scope="session")
 def data_root() -> pathlib.Path:
     """Root of the real scenes (``CODECSPLAT_DATA``); skips the test with the reason when unset or missing."""

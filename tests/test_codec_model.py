@@ -9,7 +9,7 @@ import json
 import pytest
 import torch
 from safetensors import safe_open
-from conftest import tiny_coding_model
+from conftest import needs_warp_cpu, tiny_coding_model
 from safetensors.torch import save_file
 
 from codecsplat_warp.codec import LAMBDA_MAX, LAMBDA_MIN, DecodedScene, bytes_report, parse_bitstream
@@ -196,6 +196,7 @@ def test_decode_refuses_another_device_than_the_models(coded):
 
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU visible to torch")
+@needs_warp_cpu
 def test_bitstream_encoded_on_cuda_decodes_on_cpu_to_the_same_symbols():
     images, cameras = _scene(64, 96, seed=5)
     gpu = tiny_coding_model(0).cuda()

@@ -19,7 +19,7 @@ import pytest
 import torch
 from PIL import Image
 
-from conftest import DEVICES
+from conftest import DEVICES, needs_warp_cpu
 from codecsplat_warp.cameras import Cameras
 from codecsplat_warp.cli import EXIT_USER, main
 from codecsplat_warp.data import ProceduralConfig, procedural_scene
@@ -224,6 +224,7 @@ def test_launches_of_several_views_give_the_same_depth(monkeypatch):
 
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU visible to torch")
+@needs_warp_cpu
 def test_cuda_agrees_with_cpu():
     scene = tiny_scene()
     cpu = mvs_depth(*as_input(scene), TINY)
