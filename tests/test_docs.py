@@ -4,6 +4,7 @@ sessions."""
 
 from __future__ import annotations
 
+import json
 import pathlib
 import re
 import shutil
@@ -106,3 +107,38 @@ def test_no_text_labels_work_by_numbered_sessions():
             if NUMBERED_SESSIONS.search(line):
                 hits.append(f"{name}:{number}: {line.strip()[:80]}")
     assert hits == []
+
+
+REDISTRIBUTABLE = re.compile(r"\bCC BY(-SA)? 4\.0\b")
+"""A recorded scene licence that lets the docs show the scene's photographs, with attribution (not NC, not ND)."""
+
+
+def scenes_in_picture_name(name: str, scenes: list[str]) -> list[str]:
+    """The scenes whose name, or whose name without its source prefix (``bmvs_``, ``llff_``, ...), a picture's file
+    name holds (hyphens read as underscores)."""
+    name = name.replace("-", "_")
+    return [s for s in scenes if s in name or ("_" in s and s.split("_", 1)[1] in name)]
+
+
+def test_scene_names_are_found_in_picture_names_with_or_without_their_prefix():
+    scenes = ["bmvs_stone_horse", "nerd_mary_rose", "llff_horns"]
+    assert scenes_in_picture_name("rdo-stone-horse-2views.jpg", scenes) == ["bmvs_stone_horse"]
+    assert scenes_in_picture_name("failure-thin-foreground-bmvs-stone-horse.jpg", scenes) == ["bmvs_stone_horse"]
+    assert scenes_in_picture_name("heldout-rate-distortion-re10k.png", scenes) == []
+
+
+def test_pictures_in_the_docs_show_only_scenes_whose_licence_lets_us_redistribute_them(data_root):
+    """Each picture in docs/images that names a real scene shows one whose recorded licence is CC BY (or BY-SA) 4.0,
+    and the docs name that scene's source beside it. Catches: a comparison picture of a scene with no licence,
+    or a non-commercial one, committed into the docs."""
+    licences = {p.name: json.loads((p / "cameras.json").read_text())["source"]["license"]
+                for p in data_root.iterdir() if (p / "cameras.json").is_file()}
+    pages = "\n".join(page.read_text(encoding="utf-8") for page in markdown_pages())
+    refused = []
+    for picture in sorted((DOCS / "images").iterdir()):
+        for scene in scenes_in_picture_name(picture.name, sorted(licences)):
+            licence = licences[scene]
+            if not REDISTRIBUTABLE.search(licence) or "NC" in licence.replace("NCC", ""):
+                refused.append(f"{picture.name}: {scene} ({licence})")
+    assert refused == []
+    assert "CC BY 4.0" in pages and "BlendedMVS" in pages
