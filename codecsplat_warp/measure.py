@@ -43,32 +43,39 @@ def synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def timed(fn: Callable[[], object], device: torch.device) -> tuple[object, float]:
-    """``(fn(), seconds)``: wall time of one call of ``fn``, the device work it queued included."""
+Clock = Callable[[], float]
+"""A clock read in seconds: :func:`time.perf_counter` by default; tests pass a scripted one."""
+
+
+def timed(fn: Callable[[], object], device: torch.device,
+          clock: Clock = time.perf_counter) -> tuple[object, float]:
+    """``(fn(), seconds)``: wall time of one call of ``fn``, the device work it queued included (``clock`` read
+    once before the call and once after the device finished)."""
     synchronize(device)
-    start = time.perf_counter()
+    start = clock()
     result = fn()
     synchronize(device)
-    return result, time.perf_counter() - start
+    return result, clock() - start
 
 
 class PhaseTimer:
     """A :data:`Timer` that sums wall seconds per phase in :attr:`seconds` (``{phase: seconds}``), synchronising
-    ``device`` at each phase's start and end."""
+    ``device`` at each phase's start and end and reading ``clock`` (:data:`Clock`) there."""
 
-    def __init__(self, device: torch.device):
+    def __init__(self, device: torch.device, clock: Clock = time.perf_counter):
         self.device = device
+        self.clock = clock
         self.seconds: dict[str, float] = {}
 
     @contextlib.contextmanager
     def __call__(self, phase: str) -> Iterator[None]:
         synchronize(self.device)
-        start = time.perf_counter()
+        start = self.clock()
         try:
             yield
         finally:
             synchronize(self.device)
-            self.seconds[phase] = self.seconds.get(phase, 0.0) + time.perf_counter() - start
+            self.seconds[phase] = self.seconds.get(phase, 0.0) + self.clock() - start
 
 
 @dataclass
