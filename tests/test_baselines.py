@@ -111,9 +111,36 @@ def test_png_stream_with_a_bad_count_or_a_broken_png_chunk_is_detected():
     with pytest.raises(BitstreamError, match="do not fit"):
         codec.decode(_repacked(data, PNG_MAGIC, {"count": too_many}))
     # Byte 36 of a PNG is the low byte of its second chunk's length (8-byte signature + 25-byte IHDR chunk + 3):
-    # Pillow meets a broken chunk and raises SyntaxError, which the decoder must turn into a BitstreamError.
+    # the chunk no longer ends where its CRC is, which the decoder must report as a BitstreamError.
     with pytest.raises(BitstreamError, match="broken PNG"):
         codec.decode(_repacked(data, PNG_MAGIC, flip=(36, 3)))
+
+
+def _png_chunks(png: bytes) -> dict[bytes, tuple[int, int]]:
+    """``{chunk type: (first, end)}`` byte ranges of the data of each chunk of a PNG (one chunk of each type)."""
+    chunks, offset = {}, 8
+    while offset < len(png):
+        length, kind = int.from_bytes(png[offset:offset + 4], "big"), png[offset + 4:offset + 8]
+        chunks[kind] = (offset + 8, offset + 8 + length)
+        offset += 12 + length
+    return chunks
+
+
+def test_every_flipped_bit_of_a_png_image_data_is_detected():
+    """Pillow checks no CRC of the image data (IDAT) and stops inflating before zlib's checksum, so flips there
+    decoded to other opacities or SH labels without an error. Catches: a decoder that does not check each PNG
+    chunk's CRC-32 (the opacity and SH-label images, the two that decoded silently, every bit of their IDAT)."""
+    codec, data = _streams()[1]
+    header, parts = unpack(data, PNG_MAGIC)
+    assert len(parts) == 8  # means (low bytes, high bytes), scales, quats, opacities, sh0, SH centroids, SH labels
+    for index in (4, 7):
+        first, end = _png_chunks(parts[index])[b"IDAT"]
+        for byte in range(first, end):
+            for bit in range(8):
+                flipped = bytearray(parts[index])
+                flipped[byte] ^= 1 << bit
+                with pytest.raises(BitstreamError, match="broken PNG"):
+                    codec.decode(pack(PNG_MAGIC, header, parts[:index] + [bytes(flipped)] + parts[index + 1:]))
 
 
 def test_bit_flips_raise_bitstream_errors_only():

@@ -18,6 +18,7 @@ As gsplat 1.5's ``png_compression``, with two deviations noted below:
 from __future__ import annotations
 
 import io
+import struct
 import zlib
 from dataclasses import dataclass
 
@@ -39,6 +40,9 @@ CENTROID_BITS = 6
 PNG_COMPRESS_LEVEL = 9
 MAX_SH_CLUSTERS = 1 << 16
 """SH cluster labels are stored as a 16-bit image."""
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_CHUNK_HEAD = struct.Struct(">I4s")
+"""A PNG chunk's big-endian data length and 4-byte type; its data and a CRC-32 of type and data follow."""
 
 
 @dataclass(frozen=True)
@@ -175,9 +179,38 @@ def _png(image: np.ndarray) -> bytes:
 
 
 def _read_png(data: bytes, shape: tuple[int, ...]) -> np.ndarray:
-    """Pixels of PNG bytes, checked to have ``shape``."""
+    """Pixels of PNG bytes, checked to have ``shape`` (and their chunks first, :func:`_check_png_chunks`)."""
+    _check_png_chunks(data)
     with Image.open(io.BytesIO(data)) as image:
         pixels = np.asarray(image)
     if pixels.shape != shape:
         raise BitstreamError(f"corrupt PNG stream: image of shape {pixels.shape}, expected {shape}")
     return pixels
+
+
+def _check_png_chunks(data: bytes) -> None:
+    """Check the chunk layout of PNG bytes: the signature, every chunk inside the data with the CRC-32 the format
+    gives it, ``IEND`` last and nothing after it.
+
+    Pillow checks the CRCs of the chunks before the image data but not those of ``IDAT``, and stops inflating once
+    it has the pixels, before zlib's checksum: without this check a flipped bit in the image data can decode to
+    other pixels without an error.
+
+    Raises:
+        BitstreamError: a bad signature, a chunk running past the end, a CRC mismatch, no ``IEND``, or bytes after it.
+    """
+    if data[:len(PNG_SIGNATURE)] != PNG_SIGNATURE:
+        raise BitstreamError("corrupt PNG stream: broken PNG signature")
+    offset, kind = len(PNG_SIGNATURE), b""
+    while kind != b"IEND":
+        if offset + _CHUNK_HEAD.size + 4 > len(data):
+            raise BitstreamError(f"corrupt PNG stream: broken PNG, no IEND chunk before the end ({len(data)} bytes)")
+        length, kind = _CHUNK_HEAD.unpack_from(data, offset)
+        end = offset + _CHUNK_HEAD.size + length
+        if end + 4 > len(data):
+            raise BitstreamError(f"corrupt PNG stream: broken PNG chunk {kind!r} at byte {offset} runs past the end")
+        if zlib.crc32(data[offset + 4:end]) != int.from_bytes(data[end:end + 4], "big"):
+            raise BitstreamError(f"corrupt PNG stream: broken PNG chunk {kind!r} at byte {offset} (CRC mismatch)")
+        offset = end + 4
+    if offset != len(data):
+        raise BitstreamError(f"corrupt PNG stream: broken PNG, {len(data) - offset} bytes after its IEND chunk")
