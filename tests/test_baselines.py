@@ -116,6 +116,16 @@ def test_png_stream_with_a_bad_count_or_a_broken_png_chunk_is_detected():
         codec.decode(_repacked(data, PNG_MAGIC, flip=(36, 3)))
 
 
+def test_ply_stream_quantised_to_zero_bits_is_detected():
+    """Catches: a header whose ``bits`` a flipped bit turned from 8 into 0, decoded to NaN Gaussians (0 levels)
+    without an error."""
+    codec, data = _streams()[0]
+    header, _ = unpack(data, b"GPQD")
+    groups = [header["groups"][0], {**header["groups"][1], "bits": 0}]
+    with pytest.raises(BitstreamError, match="quantisation to"):
+        codec.decode(_repacked(data, b"GPQD", {"groups": groups}))
+
+
 def _png_chunks(png: bytes) -> dict[bytes, tuple[int, int]]:
     """``{chunk type: (first, end)}`` byte ranges of the data of each chunk of a PNG (one chunk of each type)."""
     chunks, offset = {}, 8

@@ -29,8 +29,11 @@ def dequantise(q: np.ndarray, mins: list[float], maxs: list[float], bits: int) -
     """float32 [N,C] values of quantised columns ``q`` [N,C] (inverse of :func:`quantise`).
 
     Raises:
-        BitstreamError: ``mins`` / ``maxs`` do not have one finite entry per column.
+        BitstreamError: ``bits`` is not in 1..16 (0 would divide by zero levels), or ``mins`` / ``maxs`` do not have
+            one finite entry per column.
     """
+    if not 1 <= bits <= 16:
+        raise BitstreamError(f"quantisation to {bits} bits: a stream holds 1 to 16 bits a value")
     mins, maxs = np.asarray(mins, dtype=np.float64), np.asarray(maxs, dtype=np.float64)
     if mins.shape != (q.shape[1],) or maxs.shape != (q.shape[1],) or not np.isfinite(mins).all() \
             or not np.isfinite(maxs).all():
