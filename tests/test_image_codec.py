@@ -1,12 +1,15 @@
 """The image-codec baseline (``codecsplat_warp.baselines.image_codec``): WebP and JPEG files of the context
-photographs decode to the photographs within their coding error, spend more bytes at higher qualities, and bad
-qualities, bad images and corrupt files are typed errors."""
+photographs decode to the photographs within their coding error, spend more bytes at higher qualities, bad
+qualities, bad images and corrupt files are typed errors, and a flipped bit decodes to what the file says."""
 
 from __future__ import annotations
+
+import io
 
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from codecsplat_warp.baselines import ImageCodec
 from codecsplat_warp.baselines.image_codec import FORMATS
@@ -58,14 +61,62 @@ def test_corrupt_files_raise_bitstream_errors(photographs, name):
                          ([first, small[1]], "differ in size")]:
         with pytest.raises(BitstreamError, match=match):
             codec.decode(files)
+
+
+def _pillow_pixels(data: bytes) -> torch.Tensor | None:
+    """float32 [1,3,H,W] pixels / 255 that Pillow itself decodes from an image file, or None where it cannot."""
+    try:
+        with Image.open(io.BytesIO(data)) as image:
+            image.load()
+            pixels = np.array(image)
+    except Exception:  # noqa: BLE001 - any failure to read is "no pixels" here
+        return None
+    return torch.from_numpy(pixels).permute(2, 0, 1)[None].float() / 255 if pixels.ndim == 3 else None
+
+
+def _flip_regions(name: str, data: bytes) -> tuple[range, range]:
+    """Bytes of a file a flipped bit must make undecodable, and bytes whose flip must leave the pixels alone.
+
+    JPEG: the start-of-image marker; the contents of the JFIF APP0 segment (an application segment: identifier,
+    version, density, thumbnail size, which no decoder reads pixels from). WebP: the RIFF container's tags and
+    sizes and the VP8 chunk's tag and size (the first 20 bytes); nothing there leaves the pixels alone."""
+    if name == "jpeg":
+        assert data[2:4] == b"\xff\xe0" and data[6:11] == b"JFIF\0"
+        return range(0, 2), range(6, 4 + int.from_bytes(data[4:6], "big"))
+    assert data[:4] == b"RIFF" and data[8:16] == b"WEBPVP8 "
+    return range(0, 20), range(0)
+
+
+@pytest.mark.parametrize("name", sorted(FORMATS))
+def test_a_flipped_bit_is_detected_or_decodes_to_the_pixels_the_file_holds(photographs, name):
+    """JPEG and lossy WebP carry no checksum, so most flips decode to other pixels; what must hold for each flip
+    (every bit of the first 20 bytes, then 50 random bits): a BitstreamError where the file's framing breaks, the
+    original pixels where the bit is metadata (:func:`_flip_regions`), and elsewhere either a BitstreamError or
+    exactly the pixels Pillow reads from the flipped file. Catches: a decoder that returns made-up, stale or
+    default pixels for a file it cannot read, that hides a broken header, or that changes the pixels it read."""
+    codec = ImageCodec(name, 50)
+    first = codec.encode(photographs)[0]
+    original = codec.decode([first])
+    must_fail, unused = _flip_regions(name, first)
     rng = np.random.default_rng(0)
-    for _ in range(50):  # no checksum: a flipped bit is detected or decodes, and nothing else
-        mutated = bytearray(first)
-        mutated[int(rng.integers(len(first)))] ^= 1 << int(rng.integers(8))
+    flips = [(byte, bit) for byte in range(20) for bit in range(8)]
+    flips += [(int(rng.integers(20, len(first))), int(rng.integers(8))) for _ in range(50)]
+    for byte, bit in flips:
+        flipped = bytearray(first)
+        flipped[byte] ^= 1 << bit
+        where = f"bit {bit} of byte {byte}"
+        if byte in must_fail:
+            with pytest.raises(BitstreamError):
+                codec.decode([bytes(flipped)])
+            continue
         try:
-            codec.decode([bytes(mutated)])
+            decoded = codec.decode([bytes(flipped)])
         except BitstreamError:
-            pass
+            assert byte not in unused, f"{where} is metadata, yet the file no longer decodes"
+            continue
+        expected = original if byte in unused else _pillow_pixels(bytes(flipped))
+        assert expected is not None, f"{where}: decoded a file that Pillow cannot read"
+        assert decoded.shape == expected.shape and torch.equal(decoded, expected), where
 
 
 @pytest.mark.parametrize("name,quality", [("webp", -1), ("webp", 101), ("jpeg", 0), ("jpeg", 5.5), ("webp", True),
