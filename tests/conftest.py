@@ -73,3 +73,15 @@ def tiny_coding_model(seed: int):
     model = CodecSplat(get_preset("tiny"), codec=True).eval()
     model.codec.scale_posterior(POSTERIOR_GAIN)
     return model
+
+
+def assert_same_batches(got, expected) -> None:
+    """Two training batches (``train.data.TrainingBatch``) are the same scenes, bit for bit: keys, images, depth and
+    cameras."""
+    assert got.keys == expected.keys
+    for name in ("context_images", "target_images", "context_depth"):
+        torch.testing.assert_close(getattr(got, name), getattr(expected, name), rtol=0, atol=0, msg=name)
+    for views in ("context_cameras", "target_cameras"):
+        for field in ("K", "w2c", "near", "far"):
+            torch.testing.assert_close(getattr(getattr(got, views), field), getattr(getattr(expected, views), field),
+                                       rtol=0, atol=0, msg=f"{views}.{field}")
