@@ -16,15 +16,19 @@ largest lambda comes from the encoder with rate-distortion optimisation (``rdo_s
 * ``renders/target<i>-lambda<L>[-rdo].png`` and ``comparison.png`` (the context photographs | per target: the
   photograph | copy the nearest context view | the codec-free path | one column per lambda, the RDO one last);
 * ``rate_distortion.png`` and ``summary.json`` (bytes per part, metrics, seconds; the two references under
-  ``references``: what copying the nearest context view scores at zero bytes, and the model without its codec).
+  ``references``: what copying the nearest context view scores at zero bytes, and the model without its codec;
+  ``package_digest``, :func:`package_digest` of the code and model that wrote it).
 """
 
 from __future__ import annotations
 
+import hashlib
+import importlib.util
 import pathlib
 import statistics
 import time
 from dataclasses import asdict, dataclass
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -48,6 +52,31 @@ from .model.prune import prune_gaussians
 
 SHIPPED_SCENES = pathlib.Path(__file__).resolve().parent / "assets" / "scenes"
 """Scene folders shipped with the package, each usable by its folder name (``--scene NAME``)."""
+
+
+def package_folders() -> list[pathlib.Path]:
+    """The folders the package runs from: ``codecsplat_warp`` (its modules, the shipped model and scenes) and the
+    folder ``codecsplat_warp.kernels`` comes from (the repository's ``kernels/`` in a source checkout) where that
+    lies outside it."""
+    package = pathlib.Path(__file__).resolve().parent
+    spec = importlib.util.find_spec("codecsplat_warp.kernels")
+    kernels = [pathlib.Path(p).resolve() for p in (spec.submodule_search_locations or [])] if spec else []
+    return [package] + [k for k in kernels if not k.is_relative_to(package)]
+
+
+def package_digest(folders: Sequence[pathlib.Path] | None = None) -> str:
+    """SHA-256 hex of every file under ``folders`` (default :func:`package_folders`: the package's code, the
+    shipped model and the demo scenes), by name and contents; compiled ``__pycache__`` files are left out. The
+    demo records it in ``summary.json``, so that a summary can be told from one that other code or another model
+    wrote."""
+    sha = hashlib.sha256()
+    for index, folder in enumerate(folders if folders is not None else package_folders()):
+        files = sorted(p for p in folder.rglob("*") if p.is_file() and "__pycache__" not in p.parts)
+        for path in files:
+            data = path.read_bytes()
+            sha.update(f"{index}/{path.relative_to(folder).as_posix()}:{len(data)}:".encode())
+            sha.update(data)
+    return sha.hexdigest()
 
 
 @dataclass
@@ -157,7 +186,8 @@ def run_demo(model, config: DemoConfig, device: torch.device) -> dict:
         plot_rate_distortion(rows, out / "rate_distortion.png")
         progress.update(1)
     summary = {
-        "config": asdict(config), "device": str(device), "model_id": model_id(model), "scene": sample.scene, "context_views": sample.context,
+        "config": asdict(config), "device": str(device), "model_id": model_id(model), "package_digest": package_digest(),
+        "scene": sample.scene, "context_views": sample.context,
         "target_views": sample.target, "image_size": [sample.context_cameras.height, sample.context_cameras.width],
         "lpips": metrics.lpips_missing or "LPIPS-VGG and LPIPS-Alex v0.1", "rows": rows, "references": references,
         "ply": {"path": str(out / "scene.ply"), "gaussians": len(kept), "pruned": ply_report.pruned,

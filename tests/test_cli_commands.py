@@ -17,7 +17,7 @@ import torch
 from codecsplat_warp.choices import RDO_PERCEPTUAL_WEIGHT
 from codecsplat_warp.cli import BENCHMARKS, EXIT_USER, build_parser, main
 from codecsplat_warp.data import ProceduralConfig, load_scene, procedural_scene
-from codecsplat_warp.demo import DEMO_SCENE, DEMO_SEED, demo_sample
+from codecsplat_warp.demo import DEMO_SCENE, DEMO_SEED, demo_sample, package_digest
 from codecsplat_warp.export import read_ply, video
 from codecsplat_warp.metrics import WEIGHTS_ENV, psnr
 from codecsplat_warp.model import CodecSplat
@@ -147,6 +147,7 @@ def test_demo_writes_bitstreams_renders_ply_metrics_and_plots(workspace):
     for name in ("comparison.png", "rate_distortion.png", "renders/target1-lambda1024.png", "summary.json"):
         assert (out / name).is_file(), name
     assert all((workspace / f).is_file() for f in summary["files"])
+    assert summary["package_digest"] == package_digest()  # which code and model wrote it (tests/test_demo_docs.py)
 
 
 def test_the_shipped_demo_scene_has_its_context_views_around_targets_between_them():
