@@ -79,9 +79,24 @@ def test_the_fast_preset_and_zero_steps_are_the_amortised_encoder(optimised):
     assert amortised.rdo is None
 
 
-def test_a_time_budget_alone_ends_the_run():
+class SteppingClock:
+    """A stand-in for the ``time`` module whose ``perf_counter`` advances 0.05 s at every reading: a run's seconds
+    are counted in readings, whatever the machine's load."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def perf_counter(self) -> float:
+        self.now += 0.05
+        return self.now
+
+
+def test_a_time_budget_alone_ends_the_run(monkeypatch):
+    """Catches: a budget that does not end the run, or that ends it before any step. The loop's clock is scripted
+    (a loaded machine once spent the whole 0.5 s before the first step)."""
     model = tiny_coding_model(1)
     images, cameras = _scene(5)
+    monkeypatch.setattr(rdo.loop, "time", SteppingClock())
     encoded = model.encode_scene(images, cameras, 256.0, time_budget=0.5)
     assert encoded.rdo.stopped == "time" and encoded.rdo.steps >= 1
     model.decode(encoded.data)
