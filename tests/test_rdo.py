@@ -4,6 +4,7 @@ the optimised ones, seeds repeat a run, budgets and interruptions keep the best,
 
 from __future__ import annotations
 
+import gc
 import math
 import warnings
 
@@ -493,6 +494,102 @@ def test_the_graphed_perceptual_distance_gives_the_eager_distance_and_gradient(m
         assert float((grads[1] - grads[0]).norm()) <= 1e-4 * float(grads[0].norm())
     with torch.no_grad():  # a real coding's measure: no gradient
         assert float(graphed(images)) == pytest.approx(float(eager(images)), abs=1e-6)
+
+
+def _graphed_run_inputs(seed: int = 5):
+    """A tiny model on CUDA, frozen in training mode, with a run's target, config and start latents."""
+    model = tiny_coding_model(seed).cuda()
+    images, cameras = _scene(13)
+    images, cameras = images.cuda(), cameras.to(device="cuda")
+    with torch.no_grad():
+        feature = model(images, cameras)["F_c"]
+    start = model.codec.compress(feature, LAM, reconstruct=True)
+    config = rdo.RDOConfig(steps=rdo.GRAPH_MIN_STEPS)
+    target = rdo.rdo_target(model, images, cameras, LAM, start, config)
+    model.requires_grad_(False)
+    model.train()
+    return model, target, config, rdo.start_variables(start, config)
+
+
+def _on_the_captured_call(monkeypatch, action):
+    """Make the graphed decoder's capture (its first decode after the warm-up) run ``action`` first."""
+    calls = []
+
+    def decode(*args, **kwargs):
+        calls.append(None)
+        if len(calls) == rdo.GraphedDecoder.WARMUP + 1:
+            action()
+        return decode_variables(*args, **kwargs)
+
+    decode_variables = rdo.graphs.decode_variables
+    monkeypatch.setattr(rdo.graphs, "decode_variables", decode)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU visible to torch")
+def test_a_capture_survives_an_earlier_graph_that_the_garbage_collector_frees(monkeypatch):
+    """An earlier run's CUDA graph that only the cyclic garbage collector can free (a reference cycle), with the
+    collector due during the capture: the capture still succeeds, without a fallback warning.
+
+    Catches: the capture invalidated by Python's collector freeing a graph mid-capture (``cuGraphExecDestroy`` is
+    refused while a stream captures), what made ``pytest -m cuda``, run whole, fail the graphed tests after the
+    first graphed test's decoders had become garbage."""
+    model, target, config, latents = _graphed_run_inputs()
+    scratch = torch.zeros(1, device="cuda")
+    earlier = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(earlier):
+        scratch.add_(1.0)
+    box = {"graph": earlier}
+    del earlier
+
+    def drop_the_graph_into_a_cycle():
+        cycle = [box.pop("graph")]
+        cycle.append(cycle)  # only the cyclic collector can free the graph now
+        del cycle
+        for _ in range(64):  # allocations: the collector runs here unless it is held off
+            [[] for _ in range(8)]
+
+    _on_the_captured_call(monkeypatch, drop_the_graph_into_a_cycle)
+    thresholds = gc.get_threshold()
+    gc.set_threshold(1)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)  # the fallback to eager warns: fail instead
+            decoder = rdo.step_decoder(model, target, latents, config)
+    finally:
+        gc.set_threshold(*thresholds)
+    assert isinstance(decoder, rdo.GraphedDecoder)
+    assert gc.isenabled()
+    torch.rand(4, device="cuda")  # the generator still draws
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU visible to torch")
+def test_a_failed_capture_falls_back_with_one_warning_and_leaves_the_generator_and_caches_as_they_were(monkeypatch):
+    """A capture that fails (here: a synchronisation inside it) gives the eager decoder with one warning; the CUDA
+    generator's state is the one before the attempt and it still draws; the eager loss and gradients are those of a
+    run that never tried to capture (to the rounding of CUDA's atomics).
+
+    Catches: the generator left in its capturing state ("Offset increment outside graph capture encountered
+    unexpectedly" at every later draw) or advanced by the attempt, and caches filled inside the failed capture."""
+    model, target, config, latents = _graphed_run_inputs()
+    before_loss, before_grads = _loss_and_gradients(model, latents, target, config, 0, None, None)
+    _on_the_captured_call(monkeypatch, torch.cuda.synchronize)
+    rng_state = torch.cuda.get_rng_state()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        decoder = rdo.step_decoder(model, target, latents, config)
+    assert decoder is None
+    assert [str(w.message).startswith("RDO runs without CUDA graphs") for w in caught] == [True]
+    assert torch.equal(torch.cuda.get_rng_state(), rng_state)
+    assert gc.isenabled()
+    drawn = torch.rand(4, device="cuda")
+    torch.cuda.set_rng_state(rng_state)
+    assert torch.equal(torch.rand(4, device="cuda"), drawn)
+    after_loss, after_grads = _loss_and_gradients(model, latents, target, config, 0, None, None)
+    assert float(after_loss) == pytest.approx(float(before_loss), rel=1e-5)  # CUDA's atomics: rounding apart
+    for a, b in zip(before_grads, after_grads):
+        assert float((a - b).norm()) <= 1e-4 * float(a.norm()) + 1e-9
 
 
 def _loss_and_gradients(model, latents, target, config, seed, decoder, temperature):

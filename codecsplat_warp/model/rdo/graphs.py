@@ -1,10 +1,22 @@
 """CUDA graphs of a run: the decoder (:class:`GraphedDecoder`) and the loss's fixed and perceptual terms,
-captured once per run and replayed every step; a capture that fails falls back to eager, with a warning."""
+captured once per run and replayed every step; a capture that fails falls back to eager, with a warning.
+
+Every capture runs inside :func:`capture_guard`. A capture records the stream's work and forbids the CUDA calls that
+would act on the device at once; freeing a CUDA graph (``cuGraphExecDestroy``) is one of them. Graphs of an earlier
+run that only Python's cyclic garbage collector frees (a run's objects refer to each other) were freed when the
+collector happened to run in the middle of a later capture: the capture was invalidated
+(``cudaErrorStreamCaptureInvalidated``; seen in a long process, ``pytest -m cuda`` run whole), and torch's CUDA
+generator, left in its capturing state, refused every random draw after it ("Offset increment outside graph capture").
+The guard collects the garbage before a capture and holds the collector off during it, and after a capture that
+fails for any reason it takes the generator out of its capturing state and restores its state.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import warnings
-from typing import Callable
+from collections.abc import Callable, Iterator
 
 import torch
 
@@ -12,7 +24,6 @@ from ...checks import validation
 from ...gaussians import Gaussians
 from .loss import ContextLoss, Decoded, PerceptualDistance, RDOTarget, decode_variables
 from .presets import RDOConfig
-
 
 GRAPH_MIN_STEPS = 16
 """Runs of fewer steps stay eager: the capture costs about as much as a dozen steps save (2 views on an H200:
@@ -26,6 +37,39 @@ def uses_cuda_graphs(config: RDOConfig, device: torch.device) -> bool:
     return config.cuda_graphs and device.type == "cuda" and long_enough
 
 
+@contextlib.contextmanager
+def capture_guard(device: torch.device) -> Iterator[None]:
+    """Run a CUDA graph capture on ``device`` (its body) safely in a long process: Python's garbage is collected
+    first and the collector is held off until the capture ends (so no earlier graph is freed mid-capture, see the
+    module docstring); when the body raises, torch's CUDA generator of ``device`` is taken out of the capturing
+    state a failed capture leaves it in and given back the state it had before, and the error propagates."""
+    gc.collect()
+    collecting = gc.isenabled()
+    gc.disable()
+    rng_state = torch.cuda.get_rng_state(device)
+    try:
+        yield
+    except BaseException:
+        _end_generator_capture(device)
+        torch.cuda.set_rng_state(rng_state, device)
+        raise
+    finally:
+        if collecting:
+            gc.enable()
+
+
+def _end_generator_capture(device: torch.device) -> None:
+    """Take torch's CUDA generator of ``device`` out of the capturing state that a capture which failed before its
+    end leaves it in (its prologue ran, its epilogue did not): one trivial capture runs both."""
+    with torch.cuda.device(device):
+        torch.cuda.synchronize(device)
+        scratch = torch.zeros(1, device=device)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            scratch.add_(1.0)
+        del graph
+
+
 def perceptual_distance(network: torch.nn.Module, target_units: list[torch.Tensor], images: torch.Tensor,
                         graphed: bool) -> Callable[[torch.Tensor], torch.Tensor]:
     """:class:`PerceptualDistance` for renders shaped like ``images``; with ``graphed`` (CUDA) its forward and
@@ -36,7 +80,7 @@ def perceptual_distance(network: torch.nn.Module, target_units: list[torch.Tenso
     if not graphed:
         return distance
     try:
-        with torch.enable_grad(), validation(False):
+        with torch.enable_grad(), validation(False), capture_guard(images.device):
             sample = torch.rand_like(images, dtype=torch.float32).requires_grad_(True)
             return torch.cuda.make_graphed_callables(distance, (sample,))
     except RuntimeError as error:
@@ -58,7 +102,7 @@ def context_loss(images: torch.Tensor, lam: float, config: RDOConfig, graphed: b
     V, _, H, W = images.shape
     views = 2 * V if config.cross_view_weight > 0 else V
     try:
-        with torch.enable_grad(), validation(False):
+        with torch.enable_grad(), validation(False), capture_guard(images.device):
             sample = (torch.rand(views, 3, H, W, device=images.device).requires_grad_(True),
                       torch.rand((), device=images.device).requires_grad_(True))
             if config.cross_view_weight > 0:
@@ -97,22 +141,30 @@ class GraphedDecoder:
 
     def __init__(self, model, target: RDOTarget, variables: list[torch.Tensor], variable: str = "latents",
                  annealed: bool = False, precision: str = "float32"):
+        with capture_guard(variables[0].device):
+            self._capture(model, target, variables, variable, annealed, precision)
+
+    def _capture(self, model, target: RDOTarget, variables: list[torch.Tensor], variable: str, annealed: bool,
+                 precision: str) -> None:
+        """Warm the decoder up and capture its two graphs (arguments as the constructor's)."""
         with torch.no_grad():
             embedding = model.codec.embedding(target.lam)
         device = variables[0].device
-        self.temperature = torch.full((), 0.5, device=device) if annealed else None
-        self.noise = [torch.rand_like(z, dtype=torch.float32) for z in target.latents]
-        self.variables = [v.detach().clone().requires_grad_(True) for v in variables]
+        self.temperature = temperature = torch.full((), 0.5, device=device) if annealed else None
+        self.noise = noise = [torch.rand_like(z, dtype=torch.float32) for z in target.latents]
+        self.variables = static = [v.detach().clone().requires_grad_(True) for v in variables]
 
+        # the closures hold the static tensors, not self: a graphed decoder is freed as soon as its run drops it,
+        # not later by the cyclic garbage collector (see the module docstring)
         def decode() -> list[torch.Tensor]:
             # a graph replays kernels, not autocast's cast cache: captured without it
             with torch.autocast("cuda", dtype=torch.bfloat16, enabled=precision == "bfloat16", cache_enabled=False):
-                bits, s, g = decode_variables(model, self.variables, target, variable, noise=self.noise,
-                                              lambda_embedding=embedding, temperature=self.temperature)
+                bits, s, g = decode_variables(model, static, target, variable, noise=noise,
+                                              lambda_embedding=embedding, temperature=temperature)
             return [bits, s, g.means, g.quats, g.scales, g.opacities, g.sh]
 
         def backward(outputs: list[torch.Tensor], grads: list[torch.Tensor]) -> tuple[torch.Tensor, ...]:
-            return torch.autograd.grad(outputs, self.variables, grads, allow_unused=True)
+            return torch.autograd.grad(outputs, static, grads, allow_unused=True)
 
         side = torch.cuda.Stream()
         side.wait_stream(torch.cuda.current_stream())
