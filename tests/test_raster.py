@@ -18,7 +18,7 @@ from codecsplat_warp.device import THREADS_VARIABLE
 from codecsplat_warp.errors import InputError, RasterMemoryError
 from codecsplat_warp.kernels import raster_tiles
 from codecsplat_warp.kernels.raster_tiles import NO_DEPTH_BITS
-from codecsplat_warp.ops.raster import SortKey, project_gaussians, rasterize
+from codecsplat_warp.ops.raster import SortKey, default_tile_size, project_gaussians, rasterize
 from codecsplat_warp.reference.raster import rasterize_dense
 from codecsplat_warp.synthetic import random_gaussians as make_scene
 
@@ -86,6 +86,15 @@ def test_tile_size_and_render_depth_do_not_change_the_image(device):
     rgb8, depth8, alpha8, meta8 = rasterize(*scene, 21, 21, tile_size=8, render_depth=False)
     assert depth8 is None and meta8.tile_size == 8
     assert (rgb16 - rgb8).abs().max() < 1e-12 and (alpha16 - alpha8).abs().max() < 1e-12
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_call_without_a_tile_size_uses_its_devices_default(device):
+    """Catches: the CUDA default (8) or the CPU's (16) lost, e.g. one fixed default for both."""
+    scene = make_scene(30, 21, 21, device=device)
+    want = {"cuda": 8, "cpu": 16}[torch.device(device).type]
+    assert default_tile_size(torch.device(device)) == want
+    assert rasterize(*scene, 21, 21)[3].tile_size == want
 
 
 @pytest.mark.parametrize("device", DEVICES)
