@@ -34,6 +34,11 @@ class DataError(CodecSplatError):
     """A scene on disk cannot be read: missing file, count mismatch, bad pose, unsupported format."""
 
 
+class RefinerError(DataError):
+    """A learned latent refiner file cannot be used: missing, unreadable, of another format, corrupt, or trained
+    for another model than the one it is given to (the message names both model ids)."""
+
+
 class BitstreamError(CodecSplatError):
     """A scene bitstream is truncated, corrupt, foreign or of a newer format version."""
 

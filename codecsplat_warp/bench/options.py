@@ -163,6 +163,11 @@ def rdo_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", default="0,25,100,400",
                         help="comma list of optimisation step counts, each its own run; 0 is the amortised encoder "
                         "(default %(default)s)")
+    parser.add_argument("--refiner", default=None, metavar="PATH", help="a learned latent refiner file trained for the "
+                        "model (train.learned_refiner): adds rows of its iterations at --refiner-steps, and with "
+                        "--profile times its iteration against the Adam step (default: none)")
+    parser.add_argument("--refiner-steps", default="", help="comma list of the refiner's iteration counts, each its "
+                        "own run (with --refiner)")
     parser.add_argument("--set", default="", help="comma list of key=value overriding RDOConfig fields, e.g. "
                         "learning_rate=0.02,cross_view_weight=1 (default: none, the tuned settings)")
     parser.add_argument("--lpips-weights", default=None, help="folder with lpips_{vgg,alex}.safetensors (default "

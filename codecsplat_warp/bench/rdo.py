@@ -12,7 +12,10 @@ encode seconds, a line per lambda. With ``--workers`` the (sample, lambda) pairs
 visible GPU by default), and each worker's seconds of start, loading and work are printed (``worker_seconds``).
 ``--set key=value,...`` overrides fields of :class:`~codecsplat_warp.model.rdo.RDOConfig` (learning rate, loss
 weights, precision) for experiments, and ``--pictures DIR`` writes one picture per sample and lambda: the targets'
-truth, copy-nearest, codec-free and every step count.
+truth, copy-nearest, codec-free and every step count. ``--refiner PATH`` (a learned refiner trained for the model,
+:mod:`codecsplat_warp.model.rdo.refiner`) adds rows of method ``refiner`` at each iteration count of
+``--refiner-steps``: the same encode with the refiner's iterations in place of Adam's steps, to compare at equal
+encode seconds.
 
 **Profile** (``--profile``): one step of the optimisation broken into the codec, the depth head, R_post (the
 reprojection apart), the GS head, the 2D->3D map (unprojection), the rasterizer, the loss and the optimiser, each
@@ -20,7 +23,8 @@ forward and backward, from ``torch.profiler`` on the first sample at the first l
 CPU, GPU kernel time per part on CUDA (beside the step's wall time, whose excess over the kernels is launch,
 synchronisation and Python time). The median wall time of ``--profile-steps`` unprofiled steps comes first; a
 second table lists the step's costliest GPU kernels (CUDA; those the decoder's CUDA graphs replay too, which the
-parts miss) or operators (CPU).
+parts miss) or operators (CPU). With ``--refiner`` the median wall time of as many refiner iterations follows, and
+its ratio to the Adam step's.
 """
 
 from __future__ import annotations
@@ -44,11 +48,14 @@ from ..measure import format_table, machine_name, synchronize
 from ..metrics import LPIPS
 from ..metrics.image import ImageMetrics
 from ..model import pretrained
-from ..model.rdo import (RDOConfig, decoder_fixed, latent_optimiser, psnr_of_mse, rdo_config, rdo_step, rdo_target,
-                         start_variables, step_decoder)
+from ..model.codecsplat import model_id
+from ..model.rdo import (LatentRefiner, RDOConfig, decoder_fixed, latent_optimiser, load_refiner, psnr_of_mse,
+                         rdo_config, rdo_step, rdo_target, refiner_step, start_variables, step_decoder)
 from .options import RDO_PROFILE_PARTS
 
 METRICS = ("psnr", "ssim", "lpips_vgg", "lpips_alex")
+CODED_METHODS = ("codecsplat", "refiner")
+"""The rows' methods that code the scene (the others are references): Adam's steps and a refiner's iterations."""
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -57,17 +64,23 @@ def run(args: argparse.Namespace) -> dict:
     rdo_config("fast", None, None, 0, **settings)  # bad settings fail before any work
     steps = _int_list(args.steps, "--steps")
     lambdas = [float(x) for x in args.lambdas.split(",") if x.strip()]
-    if not lambdas or not steps or any(n < 0 for n in steps):
+    refiner_steps = _int_list(args.refiner_steps, "--refiner-steps") if args.refiner else []
+    if not lambdas or not steps or any(n < 0 for n in steps + refiner_steps):
         raise InputError("--lambdas and --steps need at least one value each, steps >= 0")
+    if args.refiner and not refiner_steps and not args.profile:
+        raise InputError("--refiner needs --refiner-steps (its iteration counts, each its own run)")
     workers = [device] if args.profile else shard_devices(args.device, args.workers)
     model = pretrained.load_pretrained(args.checkpoint, device)
+    refiner = load_refiner(args.refiner, model_id(model), device)[0] if args.refiner else None  # fails before work
     samples = _samples(args, model)
     result = {"device": str(device), "machine": machine_name(device), "protocol": args.protocol,
               "settings": settings, "lambdas": lambdas, "steps": steps, "workers": len(workers)}
+    if args.refiner:
+        result.update(refiner=args.refiner, refiner_steps=refiner_steps)
     if args.profile:
         perceptual = _perceptual(settings, args.lpips_weights, device)
         result["profile"] = profile_step(model, samples[0], lambdas[0], settings, args.profile_steps, device,
-                                         perceptual)
+                                         perceptual, refiner)
         if not args.json:
             print(format_profile(result["profile"]))
         return result
@@ -76,6 +89,7 @@ def run(args: argparse.Namespace) -> dict:
     parts = [_worker_part(samples, part) for part in split_round_robin(units, min(len(workers), len(units)))]
     started = time.time()
     job = {"checkpoint": args.checkpoint, "lambdas": lambdas, "steps": steps, "settings": settings,
+           "refiner": args.refiner, "refiner_steps": refiner_steps,
            "lpips_weights": args.lpips_weights, "pictures": args.pictures, "trajectory": args.trajectory,
            "started": started}
     results = run_sharded(bench_samples, [(job, part) for part in parts], workers[:len(parts)],
@@ -118,13 +132,14 @@ def bench_samples(shard: tuple[dict, list[tuple[Sample, list[int]]]],
     model = pretrained.load_pretrained(job["checkpoint"], device)
     metrics = ImageMetrics(job["lpips_weights"], device)
     perceptual = _perceptual(job["settings"], job["lpips_weights"], device)
+    refiner = load_refiner(job["refiner"], model_id(model), device)[0] if job["refiner"] else None
     rows, warmed, done, total = [], set(), 0, sum(len(ks) for _, ks in part)
     loaded = time.time()
     for sample, ks in part:
         shape = tuple(sample.context_images.shape)
         rows += bench_sample(model, sample.to(device), [job["lambdas"][k] for k in ks], job["steps"], job["settings"],
                              metrics, device, job["pictures"], perceptual, job["trajectory"], references=0 in ks,
-                             warm_up=shape not in warmed)
+                             warm_up=shape not in warmed, refiner=refiner, refiner_steps=job["refiner_steps"])
         warmed.add(shape)
         done += len(ks)
         report_progress(done, total)
@@ -199,10 +214,13 @@ def _samples(args: argparse.Namespace, model) -> list[Sample]:
 def bench_sample(model, sample: Sample, lambdas: list[float], steps: list[int], settings: dict,
                  metrics: ImageMetrics, device: torch.device, pictures: str | None,
                  perceptual: torch.nn.Module | None = None, trajectory: bool = False, references: bool = True,
-                 warm_up: bool = True) -> list[dict]:
+                 warm_up: bool = True, refiner: LatentRefiner | None = None,
+                 refiner_steps: list[int] = ()) -> list[dict]:  # fmt: skip
     """Rows of one sample: the references (copy-nearest, codec-free; with ``references``) and one per (lambda,
-    steps); with ``trajectory``, each RDO row also scores the targets at every check of the run
-    (``row["trajectory"]``). ``warm_up`` first runs a short untimed encode (Warp kernels, the allocator)."""
+    steps) of method ``codecsplat`` (Adam's steps), then one per (lambda, refiner iterations) of method
+    ``refiner`` (``refiner_steps`` iterations of ``refiner``); with ``trajectory``, each RDO row also scores the
+    targets at every check of the run (``row["trajectory"]``). ``warm_up`` first runs a short untimed encode
+    (Warp kernels, the allocator), and one of the refiner when there is one."""
     def score(rgb: torch.Tensor) -> dict:
         return _target_scores(metrics, rgb, sample)
 
@@ -216,16 +234,23 @@ def bench_sample(model, sample: Sample, lambdas: list[float], steps: list[int], 
     if warm_up:
         model.encode_scene(sample.context_images, sample.context_cameras, lambdas[0], steps=min(steps[-1], 2),
                            rdo_settings=settings, perceptual=perceptual)
+        if refiner is not None and refiner_steps:
+            model.encode_scene(sample.context_images, sample.context_cameras, lambdas[0],
+                               steps=min(refiner_steps[-1], 2), rdo_settings=settings, perceptual=perceptual,
+                               refiner=refiner)
+    runs = [("codecsplat", count, None) for count in steps]
+    runs += [("refiner", count, refiner) for count in refiner_steps] if refiner is not None else []
     for lam in lambdas:
         renders, titles = [to_uint8_frames(sample.target_images), to_uint8_frames(copy), to_uint8_frames(free)], \
             ["truth", "copy nearest", "codec-free"]
-        for count in steps:
+        for method, count, run_refiner in runs:
             checks: list[dict] = []
             hook = _trajectory_hook(model, sample, metrics, checks) if trajectory else None
             synchronize(device)
             start = time.perf_counter()
             encoded = model.encode_scene(sample.context_images, sample.context_cameras, lam, steps=count,
-                                         rdo_settings=settings, perceptual=perceptual, on_check=hook)
+                                         rdo_settings=settings, perceptual=perceptual, on_check=hook,
+                                         refiner=run_refiner)
             synchronize(device)
             seconds = time.perf_counter() - start
             with torch.no_grad():
@@ -233,17 +258,17 @@ def bench_sample(model, sample: Sample, lambdas: list[float], steps: list[int], 
                 rgb = model.render(scene.gaussians, sample.target_cameras)["rgb"]
                 own = model.render(scene.gaussians, sample.context_cameras)["rgb"]
             context_psnr = psnr_of_mse(float((own.clamp(0, 1) - sample.context_images).square().mean()))
-            row = {**base, "method": "codecsplat", "lambda": lam, "steps": count, "seconds": seconds,
+            row = {**base, "method": method, "lambda": lam, "steps": count, "seconds": seconds,
                    "bytes": len(encoded.data), "context_psnr": context_psnr, **score(rgb)}
             if encoded.rdo is not None:
                 row["rdo"] = encoded.rdo.to_dict()
             if checks:
                 row["trajectory"] = checks
             rows.append(row)
-            print(f"{sample.scene} λ={lam:g} steps={count}: {seconds:.2f} s, {len(encoded.data)} B, "
+            print(f"{sample.scene} λ={lam:g} {method} steps={count}: {seconds:.2f} s, {len(encoded.data)} B, "
                   f"target {row['psnr']:.2f} dB, context {context_psnr:.2f} dB", file=sys.stderr, flush=True)
             renders.append(to_uint8_frames(rgb))
-            titles.append(f"{count} steps, {len(encoded.data) / 1024:.1f} KiB\n{row['psnr']:.2f} dB, {seconds:.1f} s")
+            titles.append(f"{'refiner ' if run_refiner is not None else ''}{count} steps, {len(encoded.data) / 1024:.1f} KiB\n{row['psnr']:.2f} dB, {seconds:.1f} s")
         if pictures:
             path = pathlib.Path(pictures) / f"{sample.scene}-lambda{lam:g}.png"
             plot_comparison(renders, titles, path)
@@ -298,21 +323,23 @@ def format_summary(summary: list[dict], machine: str) -> str:
 
 
 def plot_curve(summary: list[dict], path: pathlib.Path) -> None:
-    """Target PSNR, LPIPS-VGG and KiB against mean encode seconds, one line per lambda (points: step counts),
-    with the references as horizontal lines."""
+    """Target PSNR, LPIPS-VGG and KiB against mean encode seconds, one line per method of coding (Adam's steps,
+    a refiner's iterations) and lambda (points: step counts), with the references as horizontal lines."""
     plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
-    coded = [e for e in summary if e["method"] == "codecsplat"]
-    for lam in sorted({e["lambda"] for e in coded}):
-        line = sorted((e for e in coded if e["lambda"] == lam), key=lambda e: e["seconds"])
+    coded = [e for e in summary if e["method"] in CODED_METHODS]
+    for method, lam in sorted({(e["method"], e["lambda"]) for e in coded}):
+        line = sorted((e for e in coded if (e["method"], e["lambda"]) == (method, lam)), key=lambda e: e["seconds"])
         seconds = [e["seconds"] for e in line]
+        label = f"λ={lam:g}" if method == "codecsplat" else f"{method} λ={lam:g}"
         for ax, key, scale in zip(axes, ("psnr", "lpips_vgg", "bytes"), (1, 1, 1 / 1024)):
             if all(key in e for e in line):
-                ax.plot(seconds, [e[key] * scale for e in line], "o-", label=f"λ={lam:g}")
+                ax.plot(seconds, [e[key] * scale for e in line], "o-" if method == "codecsplat" else "s--",
+                        label=label)
                 for e, x in zip(line, seconds):
                     ax.annotate(str(e["steps"]), (x, e[key] * scale), fontsize=7, xytext=(2, 2),
                                 textcoords="offset points")
-    for entry, style in zip((e for e in summary if e["method"] != "codecsplat"), ("k:", "k--")):
+    for entry, style in zip((e for e in summary if e["method"] not in CODED_METHODS), ("k:", "k--")):
         for ax, key in zip(axes[:2], ("psnr", "lpips_vgg")):
             if key in entry:
                 ax.axhline(entry[key], linestyle=style[1:], color="k", linewidth=1, label=entry["method"])
@@ -327,9 +354,10 @@ def plot_curve(summary: list[dict], path: pathlib.Path) -> None:
 # --------------------------------------------------------------------------------------------------
 # Profile of one step
 def profile_step(model, sample: Sample, lam: float, settings: dict, steps: int, device: torch.device,
-                 perceptual: torch.nn.Module | None = None) -> dict:
+                 perceptual: torch.nn.Module | None = None, refiner: LatentRefiner | None = None) -> dict:
     """Median wall ms of ``steps`` optimisation steps, then one profiled step broken into
-    :data:`RDO_PROFILE_PARTS` (ms of CPU time on the CPU, of GPU kernels on CUDA)."""
+    :data:`RDO_PROFILE_PARTS` (ms of CPU time on the CPU, of GPU kernels on CUDA); with a ``refiner``, the median
+    wall ms of ``steps`` of its iterations (``refiner_step_ms``, after 3 untimed ones, with the same decoder)."""
     from torch.profiler import ProfilerActivity, profile
 
     sample = sample.to(device)
@@ -361,12 +389,35 @@ def profile_step(model, sample: Sample, lam: float, settings: dict, steps: int, 
         with profile(activities=activities) as prof:
             step()
             synchronize(device)
+        iteration_times = _refiner_times(model, refiner, latents, target, config, decoder, steps, device) \
+            if refiner is not None else None
     parts = _step_parts(prof.events(), device)
+    extra = {} if iteration_times is None else {"refiner_step_ms": statistics.median(iteration_times),
+                                                "refiner_step_ms_all": iteration_times}
     return {"scene": sample.scene, "views": sample.context_cameras.num_views,
             "size": [sample.context_cameras.width, sample.context_cameras.height], "lambda": lam,
-            "step_ms": statistics.median(times), "step_ms_all": times,
+            "step_ms": statistics.median(times), "step_ms_all": times, **extra,
             "clock": "GPU kernel time" if device.type == "cuda" else "CPU time", "parts_ms": parts,
             "top": _top_work(prof.key_averages(), device)}
+
+
+def _refiner_times(model, refiner: LatentRefiner, latents: list[torch.Tensor], target, config: RDOConfig, decoder,
+                   steps: int, device: torch.device) -> list[float]:
+    """Wall ms of ``steps`` iterations of ``refiner`` from ``latents`` (after 3 untimed ones), as the encoder runs
+    them (:func:`~codecsplat_warp.model.rdo.refiner_step` under no_grad)."""
+    state = refiner.start(latents)
+    moved = [z.detach() for z in latents]
+    times = []
+    with torch.no_grad():
+        for index in range(steps + 3):
+            synchronize(device)
+            began = time.perf_counter()
+            moved, _ = refiner_step(model, refiner, moved, state, target, config, None, config.learning_rate,
+                                    0.0, decoder)
+            synchronize(device)
+            if index >= 3:
+                times.append(1e3 * (time.perf_counter() - began))
+    return times
 
 
 TOP_ROWS = 15
@@ -431,6 +482,9 @@ def format_profile(profile: dict) -> str:
     rows.append({"part": "sum of parts", "total": sum(r["total"] for r in rows)})
     head = (f"RDO step on {profile['scene']} ({profile['views']} views, {profile['size'][0]}x{profile['size'][1]}, "
             f"λ={profile['lambda']:g}): median wall {profile['step_ms']:.2f} ms; parts in {profile['clock']} (ms)")
+    if "refiner_step_ms" in profile:
+        head += (f"\nrefiner iteration: median wall {profile['refiner_step_ms']:.2f} ms "
+                 f"({profile['refiner_step_ms'] / profile['step_ms']:.2f}x the Adam step)")
     columns = [("part", "part", "s"), ("forward", "forward", ".2f"), ("backward", "backward", ".2f"),
                ("total", "total", ".2f")]
     what = "GPU kernels" if profile["clock"] == "GPU kernel time" else "operators"

@@ -164,7 +164,8 @@ class CodecSplat(nn.Module):
     def encode_scene(self, images: torch.Tensor, cameras: Cameras, lam: float, timer: Timer = no_timer,
                      preset: str = "fast", steps: int | None = None, time_budget: float | None = None,
                      seed: int = 0, progress: bool = False, rdo_settings: dict | None = None,
-                     perceptual: nn.Module | None = None, on_check=None) -> EncodedScene:
+                     perceptual: nn.Module | None = None, on_check=None, refiner: nn.Module | None = None
+                     ) -> EncodedScene:  # fmt: skip
         """Encoder: context views -> scene bitstream (Eq. 8) and the coded symbols.
 
         MVEnc, FeatHead and R_pre give F_c (bf16 autocast on CUDA), the codec quantises and range codes its
@@ -189,6 +190,9 @@ class CodecSplat(nn.Module):
                 for experiments; None keeps the tuned defaults.
             perceptual: the perceptual network (LPIPS) of a perceptual term (``perceptual_weight`` > 0).
             on_check: called with every real coding the optimisation measures (:func:`.rdo.optimise_latents`).
+            refiner: a learned refiner of the latents trained for this model (:func:`.rdo.load_refiner`): each
+                optimisation step is one of its iterations instead of an Adam step (``steps`` or the preset's
+                count of them).
         Raises:
             InputError / DeviceMismatchError: as :meth:`forward`; InputError if the model has no codec, for an
                 unknown preset, steps < 0 or a time budget <= 0.
@@ -206,7 +210,7 @@ class CodecSplat(nn.Module):
         if config.optimises:
             with timer("rdo"), torch.enable_grad():
                 result = optimise_latents(self, images.float(), cameras.to(dtype=torch.float32), lam, compressed,
-                                          config, progress, perceptual, on_check, f_c.float())
+                                          config, progress, perceptual, on_check, f_c.float(), refiner)
             compressed = result.compressed
         with timer("bitstream"):
             data = pack_bitstream(model_id(self), lam, cameras.to(dtype=self._dtype()), compressed.streams)
@@ -214,10 +218,10 @@ class CodecSplat(nn.Module):
 
     def encode(self, images: torch.Tensor, cameras: Cameras, lam: float, preset: str = "fast",
                steps: int | None = None, time_budget: float | None = None, seed: int = 0,
-               progress: bool = False) -> bytes:
+               progress: bool = False, refiner: nn.Module | None = None) -> bytes:
         """The scene bitstream of :meth:`encode_scene` (self-contained: cameras and lambda inside)."""
         return self.encode_scene(images, cameras, lam, preset=preset, steps=steps, time_budget=time_budget,
-                                 seed=seed, progress=progress).data
+                                 seed=seed, progress=progress, refiner=refiner).data
 
     @torch.no_grad()
     def decode_scene(self, data: bytes, device=None, timer: Timer = no_timer,

@@ -40,18 +40,22 @@ steps ends it too: in every case the best latents measured so far are returned (
 why). With the same ``seed`` two runs on the CPU give the same latents.
 
 One concept a module: :mod:`.presets` (the presets and :class:`RDOConfig`), :mod:`.loss` (the decoder from the
-optimised tensors and :func:`rdo_loss`), :mod:`.graphs` (the CUDA graphs of a run) and :mod:`.loop` (the run,
-:func:`optimise_latents`, and its steps without checks, :func:`refine_latents`, which semi-amortised training runs
-inside each training step: ``train/semi_amortised.py``).
+optimised tensors and :func:`rdo_loss`), :mod:`.graphs` (the CUDA graphs of a run), :mod:`.refiner` (a learned
+refiner of the latents, :class:`LatentRefiner`, whose iterations can replace Adam's steps) and :mod:`.loop` (the run,
+:func:`optimise_latents`, and its steps without checks: :func:`refine_latents`, which semi-amortised training runs
+inside each training step, ``train/semi_amortised.py``, and :func:`learned_refine`, which the refiner's training
+runs, ``train/learned_refiner.py``).
 """
 
 from .graphs import (GRAPH_MIN_STEPS, GraphedDecoder, context_loss, perceptual_distance, step_decoder,
                      uses_cuda_graphs)
-from .loop import (CPU_CHANNELS_LAST, LATENT_LIMIT, RDOCheck, RDOResult, Refinement, annealing_temperature, decoder_fixed,
-                   heads_channels_last, latent_optimiser, latent_target, optimise_latents, rdo_step, rdo_target,
-                   refine_latents, restore_weights, start_variables)
+from .loop import (CPU_CHANNELS_LAST, RDOCheck, RDOResult, Refinement, annealing_temperature, decoder_fixed,
+                   heads_channels_last, latent_optimiser, latent_target, learned_refine, optimise_latents, rdo_step,
+                   rdo_target, refine_latents, restore_weights, start_variables)
 from .loss import (CROSS_VIEW_ALPHA_FLOOR, ContextLoss, Decoded, PerceptualDistance, RDOTarget, cross_view_error,
                    decode_variables, psnr_of_mse, rdo_loss, render_context_views)
-from .presets import PRESETS, VARIABLES, RDOConfig, cross_view_default, preset_steps, rdo_config
+from .presets import LATENT_LIMIT, PRESETS, VARIABLES, RDOConfig, cross_view_default, preset_steps, rdo_config
+from .refiner import (LatentRefiner, RefinerConfig, RefinerState, load_refiner, refiner_id, refiner_step,
+                      save_refiner)
 
-__all__ = ['CPU_CHANNELS_LAST', 'CROSS_VIEW_ALPHA_FLOOR', 'ContextLoss', 'Decoded', 'GRAPH_MIN_STEPS', 'GraphedDecoder', 'LATENT_LIMIT', 'PRESETS', 'PerceptualDistance', 'RDOCheck', 'RDOConfig', 'RDOResult', 'RDOTarget', 'Refinement', 'VARIABLES', 'annealing_temperature', 'context_loss', 'cross_view_default', 'cross_view_error', 'decode_variables', 'decoder_fixed', 'heads_channels_last', 'latent_optimiser', 'latent_target', 'optimise_latents', 'perceptual_distance', 'preset_steps', 'psnr_of_mse', 'rdo_config', 'rdo_loss', 'rdo_step', 'rdo_target', 'refine_latents', 'render_context_views', 'restore_weights', 'start_variables', 'step_decoder', 'uses_cuda_graphs']
+__all__ = ['CPU_CHANNELS_LAST', 'CROSS_VIEW_ALPHA_FLOOR', 'ContextLoss', 'Decoded', 'GRAPH_MIN_STEPS', 'GraphedDecoder', 'LATENT_LIMIT', 'LatentRefiner', 'PRESETS', 'PerceptualDistance', 'RDOCheck', 'RDOConfig', 'RDOResult', 'RDOTarget', 'Refinement', 'RefinerConfig', 'RefinerState', 'VARIABLES', 'annealing_temperature', 'context_loss', 'cross_view_default', 'cross_view_error', 'decode_variables', 'decoder_fixed', 'heads_channels_last', 'latent_optimiser', 'latent_target', 'learned_refine', 'load_refiner', 'optimise_latents', 'perceptual_distance', 'preset_steps', 'psnr_of_mse', 'rdo_config', 'rdo_loss', 'rdo_step', 'rdo_target', 'refine_latents', 'refiner_id', 'refiner_step', 'render_context_views', 'restore_weights', 'save_refiner', 'start_variables', 'step_decoder', 'uses_cuda_graphs']

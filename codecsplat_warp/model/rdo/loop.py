@@ -1,6 +1,7 @@
 """The optimisation itself: the run of the presets (:func:`optimise_latents`, with its real codings, checks, time
-budget and progress bar) and its steps without them (:func:`refine_latents`, what semi-amortised training runs
-inside each training step)."""
+budget and progress bar; Adam's steps or a learned refiner's iterations) and its steps without them
+(:func:`refine_latents`, what semi-amortised training runs inside each training step, and :func:`learned_refine`,
+what the refiner's training runs)."""
 
 from __future__ import annotations
 
@@ -22,11 +23,8 @@ from ..culling import render_depth_range
 from ..mvenc import context_neighbours
 from .graphs import GraphedDecoder, context_loss, perceptual_distance, step_decoder, uses_cuda_graphs
 from .loss import RDOTarget, psnr_of_mse, rdo_loss
-from .presets import RDOConfig
-
-
-LATENT_LIMIT = 4096.0
-"""Latents are clamped to [-LATENT_LIMIT, LATENT_LIMIT] quantisation steps after every step."""
+from .presets import LATENT_LIMIT, RDOConfig
+from .refiner import LatentRefiner, refiner_step
 
 
 @dataclass
@@ -129,9 +127,14 @@ def annealing_temperature(config: RDOConfig, step: int, elapsed: float) -> float
 def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, start: CompressedLatents,
                      config: RDOConfig, progress: bool = False, perceptual: torch.nn.Module | None = None,
                      on_check: Callable[[RDOCheck, CompressedLatents], None] | None = None,
-                     feature: torch.Tensor | None = None) -> RDOResult:
+                     feature: torch.Tensor | None = None, refiner: LatentRefiner | None = None) -> RDOResult:
     """Optimise the latents of a scene from the amortised coding ``start`` (see the module docstring), or with
     ``config.variable="feature"`` the encoder's F_c that the latents are analysed from.
+
+    With a ``refiner`` (:mod:`.refiner`, trained for this model) each step is one of its iterations
+    (:func:`~.refiner.refiner_step`) instead of an Adam step, with the same loss, learning-rate schedule, time
+    budget, checks and progress bar; the coding kept is then the last one measured (the refiner is trained for
+    the target views at its last iteration, which the context loss of the checks cannot judge).
 
     Args:
         model: a :class:`~codecsplat_warp.model.CodecSplat` with its codec (its weights are not changed).
@@ -143,6 +146,7 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
         perceptual: the perceptual network of ``config.perceptual_weight`` (see :func:`rdo_target`).
         on_check: called with every check and its coding (step 0 included), e.g. to score target views.
         feature: the amortised F_c [V,C_F,H/2,W/2] that ``start`` codes, for ``config.variable="feature"``.
+        refiner: a learned refiner, or None for the presets' Adam (InputError with ``config.variable="feature"``).
     Returns:
         :class:`RDOResult`.
     """
@@ -152,13 +156,15 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
         return RDOResult(start, 0, 0, 0.0, "steps")
     if start.feature is None:
         raise InputError("optimise_latents needs the amortised coding's feature: compress with reconstruct=True")
+    if refiner is not None and config.variable != "latents":
+        raise InputError("a learned refiner moves the latents: it needs variable='latents'")
     variables = start_variables(start, config, feature)
     checks: list[RDOCheck] = []
     kept: dict = {}
 
     def record(check: RDOCheck, compressed: CompressedLatents) -> None:
         checks.append(check)
-        if not kept or check.loss < kept["check"].loss:
+        if not kept or check.loss < kept["check"].loss or refiner is not None:
             kept.update(check=check, compressed=compressed)
         if on_check is not None:
             on_check(check, compressed)
@@ -171,6 +177,7 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
         generator = torch.Generator(device=images.device).manual_seed(config.seed)
         model.train()
         decoder = step_decoder(model, target, variables, config)
+        state = refiner.start(variables) if refiner is not None else None
         step, stopped = 0, "steps"
         bar = _progress_bar(config, progress)
         try:
@@ -182,10 +189,18 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
                     if config.time_budget is not None and elapsed >= config.time_budget:
                         stopped = "time"
                         break
-                    for group in optimiser.param_groups:
-                        group["lr"] = _learning_rate(config, first_lr, step, elapsed)
-                    rdo_step(model, variables, optimiser, target, config, generator, decoder,
-                             annealing_temperature(config, step, elapsed))
+                    temperature = annealing_temperature(config, step, elapsed)
+                    if refiner is None:
+                        for group in optimiser.param_groups:
+                            group["lr"] = _learning_rate(config, first_lr, step, elapsed)
+                        rdo_step(model, variables, optimiser, target, config, generator, decoder, temperature)
+                    else:
+                        with torch.no_grad():
+                            moved, _ = refiner_step(model, refiner, variables, state, target, config, generator,
+                                                    _learning_rate(config, first_lr, step, elapsed),
+                                                    _progress(config, step, elapsed), decoder, temperature)
+                            for v, z in zip(variables, moved):
+                                v.copy_(z)
                     step += 1
                     _advance(bar, config, step, began)
                     if config.check_every and step % config.check_every == 0 and step != config.steps:
@@ -299,9 +314,10 @@ def rdo_step(model, variables: list[torch.Tensor], optimiser: torch.optim.Optimi
 
 @dataclass
 class Refinement:
-    """What :func:`refine_latents` returns: the refined ``latents`` (per level, detached, float32) and the
-    loss's parts (:func:`rdo_loss`, detached 0-dim tensors) at the ``first`` and the ``last`` step (before each
-    step's update; both None after 0 steps)."""
+    """What :func:`refine_latents` and :func:`learned_refine` return: the refined ``latents`` (per level, float32;
+    detached from :func:`refine_latents`, with the graph to the refiner's parameters from :func:`learned_refine`
+    under grad mode) and the loss's parts (:func:`rdo_loss`, detached 0-dim tensors) at the ``first`` and the
+    ``last`` step (before each step's update; both None after 0 steps)."""
 
     latents: list[torch.Tensor]
     first: dict | None
@@ -332,6 +348,33 @@ def refine_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, la
                             temperature=annealing_temperature(config, step, 0.0))
             first = first or last
     return Refinement([v.detach() for v in variables], first, last)
+
+
+def learned_refine(model, images: torch.Tensor, cameras: Cameras, lam: float, latents: list[torch.Tensor],
+                   refiner: LatentRefiner, config: RDOConfig, generator: torch.Generator | None = None
+                   ) -> Refinement:  # fmt: skip
+    """``config.steps`` iterations of a learned ``refiner`` (:func:`~.refiner.refiner_step`, the presets' loss,
+    learning-rate schedule and quantiser, as :func:`optimise_latents` runs them) from ``latents`` (per level, on
+    the gained grid), without real codings or checks: what the refiner's training runs (:mod:`train.
+    learned_refiner`). Under grad mode the returned latents keep the graph through every iteration to the
+    refiner's parameters (not to the model's: the loss's gradient is taken at detached copies). ``config`` must
+    have a step count and ``variable="latents"``; ``images`` [V,3,H,W] float32 in [0,1], ``cameras`` the V context
+    cameras."""
+    if config.steps is None or config.variable != "latents":
+        raise InputError("learned_refine needs a step count and variable='latents'")
+    moved = [z.detach().float() for z in latents]
+    if config.steps == 0:
+        return Refinement(moved, None, None)
+    target = latent_target(model, images, cameras, lam, latents, config)
+    state = refiner.start(moved)
+    first = last = None
+    with validation(False):
+        for step in range(config.steps):
+            moved, last = refiner_step(model, refiner, moved, state, target, config, generator,
+                                       _learning_rate(config, config.learning_rate, step, 0.0),
+                                       _progress(config, step, 0.0), temperature=annealing_temperature(config, step, 0.0))
+            first = first or last
+    return Refinement(moved, first, last)
 
 
 def _check(model, variables: list[torch.Tensor], target: RDOTarget, config: RDOConfig, step: int,

@@ -11,6 +11,10 @@ from ...choices import (RDO_CROSS_VIEW_MAX_VIEWS, RDO_CROSS_VIEW_MIN_STEPS, RDO_
 from ...errors import InputError
 
 
+LATENT_LIMIT = 4096.0
+"""Latents are clamped to [-LATENT_LIMIT, LATENT_LIMIT] quantisation steps after every step."""
+
+
 VARIABLES = ("latents", "feature")
 """What the optimisation can move (:attr:`RDOConfig.variable`)."""
 
