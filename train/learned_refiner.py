@@ -49,9 +49,10 @@ from codecsplat_warp.model.codecsplat import model_id
 from codecsplat_warp.model.pretrained import DEFAULT_CHECKPOINT
 from codecsplat_warp.model.rdo import (PRESETS, LatentRefiner, RefinerConfig, learned_refine, load_refiner,
                                        rdo_config, save_refiner)
-from codecsplat_warp.nn.config import FEATURE_STRIDE, ModelConfig
+from codecsplat_warp.nn.config import ModelConfig
 
 from . import stage1, stage2
+from .semi_amortised import decode_latents, psnr_of, synchronize
 from .checkpoint import latest_checkpoint, read_weights, weights_for_use
 from .data import BatchSource, TrainingBatch
 
@@ -124,7 +125,7 @@ class RefinerTraining(torch.nn.Module):
         rdo = rdo_config(config.inner_preset, steps=config.iterations, views=views, cuda_graphs=False,
                          check_every=0)
         refined, gains = [], []
-        _synchronize(device)
+        synchronize(device)
         began = time.perf_counter()
         for scene, cameras in enumerate(batch.scene_contexts()):
             rows = slice(scene * views, (scene + 1) * views)
@@ -134,8 +135,8 @@ class RefinerTraining(torch.nn.Module):
                                     lam, [z[rows] for z in latents], self.refiner, rdo, generator)
             refined.append(result.latents)
             if result.first is not None:
-                gains.append(_psnr_of(result.last["mse"]) - _psnr_of(result.first["mse"]))
-        _synchronize(device)
+                gains.append(psnr_of(result.last["mse"]) - psnr_of(result.first["mse"]))
+        synchronize(device)
         total = config.iterations * batch.scenes
         metrics = {"iterations": float(config.iterations),
                    "context_gain": torch.stack(gains).mean() if gains else 0.0,
@@ -161,27 +162,6 @@ def refiner_loss(trained: torch.nn.Module, lpips: LPIPS, batch: TrainingBatch, c
     loss, metrics = stage2.codec_loss(model, lpips, batch, config, step, lam, out)
     inner.update(target_psnr_amortised=amortised, target_gain=metrics["psnr"] - amortised)
     return loss, {**metrics, **inner}
-
-
-def decode_latents(model: CodecSplat, cameras, lam: float, neighbours: torch.Tensor,
-                   latents: list[torch.Tensor]) -> dict:
-    """The codec path's outputs from ``latents`` (per level, on the gained grid; the model's training quantiser),
-    with their graph: ``F_hat``, ``S``, ``D_hat``, ``rate_bits`` and ``gaussians``."""
-    device = latents[0].device
-    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda"):
-        coded = model.codec.forward_latents(latents, lam, cameras.height // FEATURE_STRIDE,
-                                            cameras.width // FEATURE_STRIDE)
-        s, depth, gaussians = model.decode_feature(coded.feature, cameras, neighbours)
-    return {"F_hat": coded.feature, "S": s, "D_hat": depth, "rate_bits": coded.bits.sum(), "gaussians": gaussians}
-
-
-def _psnr_of(mse: torch.Tensor) -> torch.Tensor:
-    return -10.0 * torch.log10(mse.float().clamp_min(1e-12))
-
-
-def _synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def build_model(model_config: ModelConfig, config: LearnedRefinerConfig) -> RefinerTraining:

@@ -162,16 +162,16 @@ def refine_scenes(model: CodecSplat, batch: TrainingBatch, lam: float, latents: 
         rdo = rdo_config(config.inner_preset, steps=steps, views=views, precision=config.inner_precision,
                          cuda_graphs=False, check_every=0)
         generator = torch.Generator(device=device).manual_seed(config.seed * 1_000_003 + step * 101 + scene)
-        _synchronize(device)
+        synchronize(device)
         began = time.perf_counter()
         result = refine_latents(model, batch.context_images[rows].float(), cameras.to(dtype=torch.float32), lam,
                                 [z[rows] for z in latents], rdo, generator)
-        _synchronize(device)
+        synchronize(device)
         seconds += time.perf_counter() - began
         refined.append(result.latents)
         drawn.append(steps)
         if result.first is not None:
-            gains.append(_psnr_of(result.last["mse"]) - _psnr_of(result.first["mse"]))
+            gains.append(psnr_of(result.last["mse"]) - psnr_of(result.first["mse"]))
     total = sum(drawn)
     metrics = {"inner_steps": total / len(drawn),
                "context_gain": torch.stack(gains).mean() if gains else 0.0,
@@ -185,19 +185,29 @@ def decode_refined(model: CodecSplat, cameras, lam: float, out: dict, refined: l
     stop_gradient(refined - z)`` with ``z`` the amortised ``out["latents"]``; returns ``F_hat``, ``S``,
     ``D_hat``, ``rate_bits`` and ``gaussians`` to replace ``out``'s."""
     straight = [z + (r.to(z.dtype) - z).detach() for z, r in zip(out["latents"], refined)]
-    device = straight[0].device
+    return decode_latents(model, cameras, lam, out["neighbours"], straight)
+
+
+def decode_latents(model: CodecSplat, cameras, lam: float, neighbours: torch.Tensor,
+                   latents: list[torch.Tensor]) -> dict:
+    """The codec path's outputs from ``latents`` (per level, on the gained grid; the model's training quantiser),
+    with their graph: ``F_hat``, ``S``, ``D_hat``, ``rate_bits`` and ``gaussians`` (bf16 autocast on CUDA, as
+    stage 2)."""
+    device = latents[0].device
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=device.type == "cuda"):
-        coded = model.codec.forward_latents(straight, lam, cameras.height // FEATURE_STRIDE,
+        coded = model.codec.forward_latents(latents, lam, cameras.height // FEATURE_STRIDE,
                                             cameras.width // FEATURE_STRIDE)
-        s, depth, gaussians = model.decode_feature(coded.feature, cameras, out["neighbours"])
+        s, depth, gaussians = model.decode_feature(coded.feature, cameras, neighbours)
     return {"F_hat": coded.feature, "S": s, "D_hat": depth, "rate_bits": coded.bits.sum(), "gaussians": gaussians}
 
 
-def _psnr_of(mse: torch.Tensor) -> torch.Tensor:
+def psnr_of(mse: torch.Tensor) -> torch.Tensor:
+    """PSNR in dB (peak 1) of a mean squared error tensor."""
     return -10.0 * torch.log10(mse.float().clamp_min(1e-12))
 
 
-def _synchronize(device: torch.device) -> None:
+def synchronize(device: torch.device) -> None:
+    """Wait for ``device``'s queued work (CUDA; nothing on the CPU), e.g. before reading a wall clock."""
     if device.type == "cuda":
         torch.cuda.synchronize(device)
 
