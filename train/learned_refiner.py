@@ -47,12 +47,12 @@ from codecsplat_warp.metrics.image import psnr
 from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.model.codecsplat import model_id
 from codecsplat_warp.model.pretrained import DEFAULT_CHECKPOINT
-from codecsplat_warp.model.rdo import (PRESETS, LatentRefiner, RefinerConfig, learned_refine, load_refiner,
+from codecsplat_warp.model.rdo import (LatentRefiner, RefinerConfig, learned_refine, load_refiner,
                                        rdo_config, save_refiner)
 from codecsplat_warp.nn.config import ModelConfig
 
 from . import stage1, stage2
-from .semi_amortised import decode_latents, psnr_of, synchronize
+from .semi_amortised import check_inner_preset, decode_latents, psnr_of, synchronize
 from .checkpoint import latest_checkpoint, read_weights, weights_for_use
 from .data import BatchSource, TrainingBatch
 
@@ -245,9 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
 def parse_args(argv: list[str] | None = None) -> LearnedRefinerConfig:
     """Command line -> :class:`LearnedRefinerConfig`; InputError for a bad refiner option."""
     config = stage1.parse_args(argv, LearnedRefinerConfig, build_parser())
-    if config.inner_preset not in PRESETS or config.inner_preset == "fast":
-        raise InputError(f"--inner-preset must be an optimising preset ({', '.join(p for p in PRESETS if p != 'fast')}), "
-                         f"got {config.inner_preset!r}")
+    check_inner_preset(config.inner_preset)
     if config.iterations < 1 or config.hidden < 1:
         raise InputError("--iterations and --hidden must be >= 1")
     if config.coded_every < 1:

@@ -270,14 +270,19 @@ def parse_args(argv: list[str] | None = None) -> SemiAmortisedConfig:
     """Command line -> :class:`SemiAmortisedConfig`; InputError for a bad inner-loop option."""
     config = stage1.parse_args(argv, SemiAmortisedConfig, build_parser())
     parse_inner_steps(config.inner_steps)
-    if config.inner_preset not in PRESETS or config.inner_preset == "fast":
-        raise InputError(f"--inner-preset must be an optimising preset ({', '.join(p for p in PRESETS if p != 'fast')}), "
-                         f"got {config.inner_preset!r}")
+    check_inner_preset(config.inner_preset)
     if config.inner_precision not in ("float32", "bfloat16"):
         raise InputError(f"--inner-precision must be float32 or bfloat16, got {config.inner_precision!r}")
     if config.coded_every < 1:
         raise InputError("--coded-every must be >= 1")
     return config
+
+
+def check_inner_preset(name: str) -> None:
+    """InputError unless ``name`` is a preset that optimises (``--inner-preset``)."""
+    if name not in PRESETS or name == "fast":
+        raise InputError(f"--inner-preset must be an optimising preset ({', '.join(p for p in PRESETS if p != 'fast')}), "
+                         f"got {name!r}")
 
 
 def main(argv: list[str] | None = None) -> None:
