@@ -167,7 +167,7 @@ def rdo_arguments(parser: argparse.ArgumentParser) -> None:
                         "model (train.learned_refiner): adds rows of its iterations at --refiner-steps, and with "
                         "--profile times its iteration against the Adam step (default: none)")
     parser.add_argument("--refiner-steps", default="", help="comma list of the refiner's iteration counts, each its "
-                        "own run (with --refiner)")
+                        "own run (with --refiner; default: none, which --refiner without --profile refuses)")
     parser.add_argument("--set", default="", help="comma list of key=value overriding RDOConfig fields, e.g. "
                         "learning_rate=0.02,cross_view_weight=1 (default: none, the tuned settings)")
     parser.add_argument("--lpips-weights", default=None, help="folder with lpips_{vgg,alex}.safetensors (default "
