@@ -1,9 +1,9 @@
 """The ``codecsplat`` command line.
 
 Commands: ``demo`` (the shipped model on a real captured scene), ``encode`` (scene -> bitstream), ``decode``
-(bitstream -> 3DGS PLY), ``render`` (bitstream -> frames, GIF or MP4), ``eval`` (the paper's tables with
-baselines), ``depth`` (multi-view stereo depth maps of a posed scene), ``bench`` (benchmarks) and ``selfcheck``
-(kernels against float64 references).
+(bitstream -> 3DGS PLY), ``render`` (bitstream -> frames, GIF or MP4), ``view`` (bitstream, PLY or scene folder ->
+an interactive viewer in the browser), ``eval`` (the paper's tables with baselines), ``depth`` (multi-view stereo
+depth maps of a posed scene), ``bench`` (benchmarks) and ``selfcheck`` (kernels against float64 references).
 
 Exit codes: 0 success, 1 user error (bad arguments or input, reported as one line without a traceback),
 2 internal error (a bug: the traceback is printed). Every command takes ``--device cpu|cuda|auto`` and
@@ -81,6 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .choices import DEMO_RDO_STEPS, PROCEDURAL, RDO_PERCEPTUAL_WEIGHT
     from .choices import FRAME_FORMATS as FORMATS
     from .choices import PAPER_LAMBDAS, PROTOCOL_NAMES as PROTOCOLS, RDO_PRESETS
+    from .view.options import add_arguments as add_view_arguments
 
     parser = _Parser(prog="codecsplat", description="CodecSplat on NVIDIA Warp: KB-level feed-forward 3D Gaussian "
                                                     "splatting bitstreams, kernels, benchmarks and tools.")
@@ -144,6 +145,11 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("-o", "--out", required=True, help="output folder")
     render.add_argument("--format", choices=FORMATS, default="png", help="png frames, gif or mp4 (H.264, through imageio-ffmpeg) (default %(default)s)")
     render.add_argument("--fps", type=float, default=30.0, help="frames per second of gif/mp4 (default %(default)g)")
+
+    view = sub.add_parser("view", help="bitstream, 3DGS PLY or scene folder -> an interactive viewer in the browser "
+                          "(until Ctrl-C)")
+    _model_options(view)
+    add_view_arguments(view, tuple(RDO_PRESETS))
 
     evaluate = sub.add_parser("eval", help="the paper's Tables 1 and 2 (with baselines) on scene folders or chunks")
     _model_options(evaluate)
@@ -561,6 +567,22 @@ def _cmd_render(args) -> int:
     return EXIT_OK
 
 
+def _cmd_view(args) -> int:
+    from .view.serve import ViewConfig, serve
+
+    device = _device(args)
+    config = ViewConfig(input=args.input, host=args.host, port=args.port, lam=args.lam, preset=args.preset,
+                        views=args.views, size=_size(args.size) if args.size else None, cameras=args.cameras,
+                        max_side=args.max_frame_side, progress=not args.json)
+
+    def announce(result: dict, lines: list[str]) -> None:
+        _emit(args, result, lines)
+        sys.stdout.flush()
+
+    serve(config, device, _checkpoint(args), _context_views, default_preset(device), announce)
+    return EXIT_OK
+
+
 def _cmd_eval(args) -> int:
     from .eval.evaluate import BASELINE_NAMES, EvalConfig
     from .eval.shards import evaluate_sharded, format_worker_seconds, shard_devices
@@ -684,7 +706,7 @@ def _cmd_bench(args) -> int:
 
 
 COMMANDS = {"demo": _cmd_demo, "encode": _cmd_encode, "decode": _cmd_decode, "render": _cmd_render,
-            "eval": _cmd_eval, "depth": _cmd_depth, "selfcheck": _cmd_selfcheck, "bench": _cmd_bench}
+            "view": _cmd_view, "eval": _cmd_eval, "depth": _cmd_depth, "selfcheck": _cmd_selfcheck, "bench": _cmd_bench}
 
 
 def main(argv: list[str] | None = None) -> int:

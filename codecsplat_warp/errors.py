@@ -66,3 +66,14 @@ class NoSamplesError(DataError):
     def __init__(self, message: str, skipped: list[dict] | None = None):
         super().__init__(message)
         self.skipped = list(skipped or [])
+
+
+class ViewerError(CodecSplatError):
+    """``codecsplat view`` cannot serve its input as asked: an option that does not apply to the input (``--lambda``
+    with a bitstream, ``--cameras`` with a scene folder) or an address it cannot listen on. The message names the
+    option."""
+
+
+class PortInUseError(ViewerError):
+    """The viewer's port is taken by another program. The message names the port and the way out (``--port 0``:
+    the next free port)."""
