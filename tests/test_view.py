@@ -19,17 +19,19 @@ import torch
 from conftest import tiny_coding_model
 from plyfile import PlyData, PlyElement
 
-from codecsplat_warp.cli import EXIT_USER, main
+from codecsplat_warp.cli import EXIT_USER, _context_views, main
 from codecsplat_warp.data import ProceduralConfig, load_scene, procedural_scene
-from codecsplat_warp.errors import DataError, PortInUseError, ViewerError
+from codecsplat_warp.errors import DataError, InputError, PortInUseError, ViewerError
 from codecsplat_warp.export.ply import write_ply
 from codecsplat_warp.gaussians import SH_C0, SH_C1, Gaussians
 from codecsplat_warp.model.prune import prune_gaussians
+from codecsplat_warp.view import inputs as view_inputs
 from codecsplat_warp.view import serve as view_serve
 from codecsplat_warp.view.app import Viewer
 from codecsplat_warp.view.geometry import (REFERENCE_WXYZ, browser_camera, framing_camera, splat_arrays,
                                            viewer_frame)
-from codecsplat_warp.view.inputs import input_kind, read_bitstream, read_gaussians
+from codecsplat_warp.view.inputs import (ENCODE_PHASES, encode_source, input_kind, read_bitstream, read_gaussians,
+                                         scene_source)
 from codecsplat_warp.view.ports import choose_port
 from codecsplat_warp.view.worker import LatestWork
 
@@ -154,6 +156,31 @@ def test_a_ply_with_cameras_opens_at_its_first_view_with_photographs(tiny, tmp_p
     assert shown.photographs.shape == (scene.num_views, HEIGHT, WIDTH, 3)
     alone = read_gaussians(str(tmp_path / "scene.ply"), None, torch.device("cpu"))
     assert alone.context is None and alone.photographs is None and alone.reference.num_views == 1
+
+
+def test_a_ply_s_photographs_are_sent_small(tiny, tmp_path, monkeypatch):
+    decoded = tiny["model"].decode_scene(tiny["bitstream"].read_bytes())
+    write_ply(tmp_path / "scene.ply", decoded.gaussians)
+    monkeypatch.setattr(view_inputs, "PHOTOGRAPH_SIDE", 16)
+    shown = read_gaussians(str(tmp_path / "scene.ply"), str(tiny["scene"] / "cameras.json"), torch.device("cpu"))
+    assert shown.photographs.shape == (6, 11, 16, 3) and shown.photographs.dtype == np.uint8
+
+
+def test_a_scene_folder_is_encoded_as_codecsplat_encode_encodes_it(tiny):
+    model = tiny["model"]
+    source = scene_source(str(tiny["scene"]), "0,3", None, model, _context_views)
+    phases = []
+    shown = encode_source(model, source, 64.0, "fast", on_phase=phases.append)
+    assert phases == list(ENCODE_PHASES) and shown.kind == "scene" and shown.name == "scene"
+    scene = load_scene(tiny["scene"])
+    context = scene.cameras.select([0, 3]).to(dtype=torch.float32)
+    expected = model.encode(scene.images[[0, 3]].float() / 255.0, context, 64.0)
+    assert shown.bitstream == expected and shown.lam == 64.0 and shown.preset == "fast"
+    assert shown.parts["total"] == len(expected) and len(shown.context_psnr) == 2
+    torch.testing.assert_close(shown.reference.w2c, scene.cameras.w2c[:1], rtol=0, atol=1e-6)  # float32 at encode
+    assert shown.photographs.shape == (2, HEIGHT, WIDTH, 3)
+    with pytest.raises(InputError, match="lambda must be in"):
+        encode_source(model, source, 2000.0, "fast")
 
 
 # --------------------------------------------------------------------------------------------------

@@ -41,6 +41,10 @@ SERVER_RENDERING = "Render on the server"
 CONTEXT_CAMERAS = "Context cameras"
 """The label of the panel's checkbox that shows or hides the context cameras' frustums."""
 
+PHOTOGRAPHS = "Their photographs"
+"""The label of the panel's checkbox that puts the context views' photographs on their frustums. Off at first: from
+a context camera's own pose its photograph fills the view (ticking it there compares photograph and decoded scene)."""
+
 FRUSTUM_COLOUR = (230, 120, 20)
 """RGB of the context cameras' frustums."""
 
@@ -50,8 +54,8 @@ FAR_FACTOR = 100.0
 FRUSTUM_SCALE = 0.15
 """Size of a context camera's frustum, as a fraction of the reference camera's focus distance."""
 
-FRUSTUM_THICKNESS = 0.004
-"""Line thickness of a frustum, as a fraction of the reference camera's focus distance."""
+FRUSTUM_THICKNESS = 2.0
+"""Line thickness of a frustum on the screen (pixels)."""
 
 STOP_WAIT_S = 5.0
 """Seconds the viewer waits for a running frame or encode to end when it stops."""
@@ -210,11 +214,7 @@ class Viewer:
                                              "streamed to this page, instead of the browser's splats")
             frame_text = gui.add_markdown(self._browser_frame_line())
             if self._scene.context is not None:
-                cameras = gui.add_checkbox(CONTEXT_CAMERAS, initial_value=True,
-                                           hint="the context cameras as frustums, with their photographs when the "
-                                           "input had them")
-                context = self._add_frustums(client)
-                cameras.on_update(lambda _: setattr(context, "visible", cameras.value))
+                self._add_camera_controls(client)
             save_view = gui.add_button("Save this view (PNG)", hint="the server's render of this camera")
             save_camera = gui.add_button("Save this camera (pose file)",
                                          hint="a cameras.json that codecsplat render --cameras takes")
@@ -231,21 +231,33 @@ class Viewer:
         save_camera.on_click(lambda event: self._send_camera(event.client))
         return view
 
-    def _add_frustums(self, client: viser.ClientHandle):
-        """The context cameras' frustums (with their photographs when there are some) under one node of ``client``'s
-        scene; returns that node."""
-        frame, context, photographs = self._frame, self._scene.context, self._scene.photographs
+    def _add_camera_controls(self, client: viser.ClientHandle) -> None:
+        """The context cameras' frustums in ``client``'s scene and the panel's checkboxes for them (and for their
+        photographs, when the input had some)."""
+        node, frustums = self._add_frustums(client)
+        cameras = client.gui.add_checkbox(CONTEXT_CAMERAS, initial_value=True,
+                                          hint="the context cameras as frustums")
+        cameras.on_update(lambda _: setattr(node, "visible", cameras.value))
+        photographs = self._scene.photographs
+        if photographs is not None:
+            shown = client.gui.add_checkbox(PHOTOGRAPHS, initial_value=False,
+                                            hint="the context views' photographs on their frustums; from a context "
+                                            "camera's own pose its photograph fills the view")
+            shown.on_update(lambda _: _show_photographs(frustums, photographs if shown.value else None))
+
+    def _add_frustums(self, client: viser.ClientHandle) -> tuple[viser.FrameHandle, list[viser.CameraFrustumHandle]]:
+        """The context cameras' frustums (without photographs) under one node of ``client``'s scene: (that node,
+        the frustums)."""
+        frame, context = self._frame, self._scene.context
         node = client.scene.add_frame("/scene/context", show_axes=False)
         c2w, K = context.c2w.numpy(), context.K.numpy()
-        for v in range(context.num_views):
-            client.scene.add_camera_frustum(
-                f"/scene/context/{v}", fov=2.0 * math.atan(context.height / (2.0 * K[v, 1, 1])),
-                aspect=context.width / context.height, scale=FRUSTUM_SCALE * frame.distance,
-                thickness=FRUSTUM_THICKNESS * frame.distance, color=FRUSTUM_COLOUR,
-                image=photographs[v] if photographs is not None else None,
-                wxyz=tuple(rotmat_to_quat(torch.from_numpy(c2w[v, :3, :3].copy())).tolist()),
-                position=tuple(c2w[v, :3, 3].tolist()))
-        return node
+        frustums = [client.scene.add_camera_frustum(
+            f"/scene/context/{v}", fov=2.0 * math.atan(context.height / (2.0 * K[v, 1, 1])),
+            aspect=context.width / context.height, scale=FRUSTUM_SCALE * frame.distance,
+            thickness=FRUSTUM_THICKNESS, thickness_units="screen", color=FRUSTUM_COLOUR,
+            wxyz=tuple(rotmat_to_quat(torch.from_numpy(c2w[v, :3, :3].copy())).tolist()),
+            position=tuple(c2w[v, :3, 3].tolist())) for v in range(context.num_views)]
+        return node, frustums
 
     def _add_splats(self, client: viser.ClientHandle, visible: bool):
         """(Re)place ``client``'s splats with the scene's; returns the handle."""
@@ -411,6 +423,12 @@ class Viewer:
             views = list(self._views.values())
         for view in views:
             view.encode_panel.show(status)
+
+
+def _show_photographs(frustums: list[viser.CameraFrustumHandle], photographs: np.ndarray | None) -> None:
+    """Put the photographs uint8 [V,H,W,3] on the V frustums, or take them off (None)."""
+    for v, frustum in enumerate(frustums):
+        frustum.image = photographs[v] if photographs is not None else None
 
 
 def _scene_markdown(scene: ViewScene) -> str:

@@ -21,19 +21,23 @@ from ..cameras import Cameras
 from ..codec import bytes_report, check_lambda
 from ..codec.bitstream import MAGIC
 from ..data import load_scene
-from ..data.preprocess import DatasetConfig, preprocess_scene
+from ..data.preprocess import DatasetConfig, preprocess_scene, resize_to_max_side
 from ..errors import DataError
 from ..export.ply import read_ply
 from ..gaussians import Gaussians
 from ..metrics import psnr
 from ..model.codecsplat import model_id
 from ..model.prune import prune_transparent
+from .geometry import framing_camera
 
 KINDS = ("bitstream", "ply", "scene")
 """The inputs ``codecsplat view`` takes: a scene bitstream, a 3DGS PLY file, a scene folder (or pose file)."""
 
 PLY_MAGIC = b"ply"
 """The first bytes of every PLY file."""
+
+PHOTOGRAPH_SIDE = 256
+"""A PLY's photographs (from ``--cameras``) are sent to the browser at most this many pixels on their long side."""
 
 ENCODE_PHASES = ("encode", "decode", "score")
 """The phases of :func:`encode_source`, in order, as its ``on_phase`` callback names them."""
@@ -84,13 +88,11 @@ class SceneSource:
 
     Attributes:
         name: the folder (or pose file) name.
-        views: the scene's view indices used as context.
         images: [V,3,H,W] float32 in [0,1] on the model's device (resized and centre-cropped).
         cameras: the V context cameras at that size (float32, the model's device).
     """
 
     name: str
-    views: list[int]
     images: torch.Tensor
     cameras: Cameras
 
@@ -133,8 +135,6 @@ def read_gaussians(path: str, cameras: str | None, device: torch.device) -> View
     world (drawn as frustums, with their photographs when its image files are there; the page opens at its first
     view), else the page opens at a camera that frames the Gaussians. DataError for a file without the 3DGS
     properties or an unreadable pose file."""
-    from .geometry import framing_camera
-
     start = time.perf_counter()
     gaussians = read_ply(path, device)
     seconds = {"read": time.perf_counter() - start}
@@ -152,11 +152,13 @@ def read_gaussians(path: str, cameras: str | None, device: torch.device) -> View
 
 
 def _photographs(scene) -> np.ndarray | None:
-    """uint8 [V,H,W,3] images of a loaded scene, None when its image files cannot be read."""
+    """uint8 [V,h,w,3] images of a loaded scene, resized to at most :data:`PHOTOGRAPH_SIDE` pixels on their long side;
+    None when its image files cannot be read."""
     try:
-        return scene.decoded_images().permute(0, 2, 3, 1).numpy()
+        images = scene.decoded_images()
     except DataError:
         return None
+    return resize_to_max_side(images, scene.cameras, PHOTOGRAPH_SIDE)[0].permute(0, 2, 3, 1).numpy()
 
 
 def scene_source(path: str, views: str | None, size: tuple[int, int] | None, model,
@@ -171,7 +173,7 @@ def scene_source(path: str, views: str | None, size: tuple[int, int] | None, mod
     config = DatasetConfig(width=width, height=height, near=0.0, far=0.0)
     scene = preprocess_scene(scene, config, frames=chosen, use_config_depth_range=False)
     device = next(model.parameters()).device
-    return SceneSource(name=pathlib.Path(path).name, views=chosen, images=(scene.images.float() / 255.0).to(device),
+    return SceneSource(name=pathlib.Path(path).name, images=(scene.images.float() / 255.0).to(device),
                        cameras=scene.cameras.to(device, torch.float32))
 
 
@@ -179,8 +181,8 @@ def encode_source(model, source: SceneSource, lam: float, preset: str,
                   on_phase: Callable[[str], None] = lambda phase: None, progress: bool = False) -> ViewScene:
     """Encode the context views of ``source`` at ``lam`` with the encoder ``preset`` (as ``codecsplat encode``),
     decode the bitstream and score its Gaussians in the context views. ``on_phase`` is called with each of
-    :data:`ENCODE_PHASES` as it starts; ``progress`` shows the optimisation's progress bar on a terminal. InputError for a λ outside [16, 1024] or an
-    unknown preset."""
+    :data:`ENCODE_PHASES` as it starts; ``progress`` shows the optimisation's progress bar on a terminal. InputError
+    for a λ outside [16, 1024] or an unknown preset."""
     lam = check_lambda(lam)
     seconds = {}
     on_phase("encode")
