@@ -28,9 +28,11 @@ import shutil
 
 import numpy as np
 import torch
+from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from codecsplat_warp.errors import DataError
+from codecsplat_warp.errors import DataError, InputError
+from codecsplat_warp.nn.config import ModelConfig
 
 from .weight_average import WeightAverage
 
@@ -272,3 +274,18 @@ def load_matching_weights(model: torch.nn.Module, tensors: dict[str, torch.Tenso
         for name, tensor in used.items():
             state[name].copy_(tensor)
     return sorted(set(state) - set(used)), sorted(set(tensors) - set(used))
+
+
+def model_file_config(path, option: str) -> ModelConfig:
+    """The network sizes stored in the metadata of the model file ``path`` (a CodecSplat safetensors file), named
+    as the command-line ``option`` (e.g. ``--init``) in the errors: InputError when the file is missing, DataError
+    when it is not a CodecSplat model file."""
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise InputError(f"{option} must name a model file, got {str(path)!r}")
+    try:
+        with safe_open(str(path), "pt") as f:
+            metadata = f.metadata() or {}
+        return ModelConfig.from_dict(json.loads(metadata["config"]))
+    except Exception as exc:  # safetensors raises its own error types for a bad header
+        raise DataError(f"{option} {path}: not a CodecSplat model file ({exc})") from None

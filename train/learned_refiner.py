@@ -39,7 +39,6 @@ from dataclasses import dataclass
 
 import torch
 import torch.distributed as dist
-from safetensors import safe_open
 
 from codecsplat_warp.errors import DataError, InputError
 from codecsplat_warp.metrics import LPIPS
@@ -53,7 +52,7 @@ from codecsplat_warp.nn.config import ModelConfig
 
 from . import stage1, stage2
 from .semi_amortised import check_inner_preset, decode_latents, psnr_of, synchronize
-from .checkpoint import latest_checkpoint, read_weights, weights_for_use
+from .checkpoint import latest_checkpoint, model_file_config, read_weights, weights_for_use
 from .data import BatchSource, TrainingBatch
 
 REFINER_LOGGED = ("iterations", "context_gain", "target_gain", "target_psnr_amortised", "iterations_per_s")
@@ -193,15 +192,7 @@ def run_model_config(config: LearnedRefinerConfig) -> ModelConfig:
     file = pathlib.Path(config.out) / "config.json"
     if file.is_file():
         return ModelConfig.from_dict(json.loads(file.read_text())["model"])
-    path = pathlib.Path(config.model)
-    if not path.is_file():
-        raise InputError(f"--model must name a model file, got {config.model!r}")
-    try:
-        with safe_open(str(path), "pt") as f:
-            metadata = f.metadata() or {}
-        return ModelConfig.from_dict(json.loads(metadata["config"]))
-    except Exception as exc:  # safetensors raises its own error types for a bad header
-        raise DataError(f"--model {path}: not a CodecSplat model file ({exc})") from None
+    return model_file_config(config.model, "--model")
 
 
 def export_refiner(run_dir) -> tuple[pathlib.Path, str]:

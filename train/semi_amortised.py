@@ -43,7 +43,6 @@ from dataclasses import dataclass
 
 import torch
 import torch.distributed as dist
-from safetensors import safe_open
 
 from codecsplat_warp.errors import DataError, InputError
 from codecsplat_warp.metrics import LPIPS
@@ -54,7 +53,7 @@ from codecsplat_warp.model.rdo import PRESETS, refine_latents, rdo_config
 from codecsplat_warp.nn.config import FEATURE_STRIDE, ModelConfig
 
 from . import stage1, stage2
-from .checkpoint import latest_checkpoint, read_weights
+from .checkpoint import latest_checkpoint, model_file_config, read_weights
 from .data import BatchSource, TrainingBatch
 
 INNER_LOGGED = ("inner_steps", "context_gain", "target_gain", "target_psnr_amortised", "inner_steps_per_s")
@@ -244,12 +243,7 @@ def run_model_config(config: SemiAmortisedConfig) -> ModelConfig:
     path = pathlib.Path(config.init)
     if not path.is_file():
         raise InputError(f"--init must name a model file or a run folder, got {config.init!r}")
-    try:
-        with safe_open(str(path), "pt") as f:
-            metadata = f.metadata() or {}
-        return ModelConfig.from_dict(json.loads(metadata["config"]))
-    except Exception as exc:  # safetensors raises its own error types for a bad header
-        raise DataError(f"--init {path}: not a CodecSplat model file ({exc})") from None
+    return model_file_config(path, "--init")
 
 
 STAGE = stage1.Stage("semi", build_model, semi_amortised_loss, LOGGED)
