@@ -15,12 +15,14 @@ from codecsplat_warp.metrics import LPIPS
 from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.model.codecsplat import model_id
 from codecsplat_warp.model.pretrained import save_pretrained
-from codecsplat_warp.model.rdo import LatentRefiner, RefinerConfig, load_refiner, save_refiner
+from codecsplat_warp.model.rdo import LatentRefiner, Refinement, RefinerConfig, load_refiner, save_refiner
 from codecsplat_warp.nn.config import get_preset
+from train import learned_refiner
 from train.checkpoint import latest_checkpoint, load_model_weights
 from train.data import DataSpec, make_source
 from train.learned_refiner import (REFINER_FILE, REFINER_LOGGED, LearnedRefinerConfig, RefinerTraining, build_model,
                                    parse_args, refiner_loss, train)
+from train.semi_amortised import parse_counts
 from train.stage1 import METRICS_FILE
 
 TINY = get_preset("tiny")
@@ -53,9 +55,40 @@ def test_the_model_is_frozen_and_the_refiner_starts_fresh_or_from_its_init(tmp_p
     with pytest.raises(RefinerError, match="trained for model"):
         build_model(TINY, LearnedRefinerConfig(model=config.model, out=config.out, hidden=4,
                                                init=str(tmp_path / "other.safetensors")))
-    for argv, match in ((["--inner-preset", "fast"], "inner-preset"), (["--iterations", "0"], "iterations")):
+    assert parse_args([]).iterations == "8" and parse_counts("8, 25,8", "--iterations", 1) == [8, 25, 8]
+    assert parse_counts(parse_args(["--iterations", "8,25,50,160"]).iterations, "--iterations", 1) == [8, 25, 50, 160]
+    for argv, match in ((["--inner-preset", "fast"], "inner-preset"), (["--hidden", "0"], "hidden"),
+                        *((["--iterations", bad], "--iterations must be a comma list of integers >= 1")
+                          for bad in ("0", "8,0", "8,-1", "8,a", "2.5", ","))):
         with pytest.raises(InputError, match=match):
             parse_args(argv)
+
+
+def test_one_iteration_count_is_drawn_per_step_for_every_scene_and_rank_and_logged(tmp_path, monkeypatch):
+    """``--iterations 1,3`` over 12 steps of two scenes, as rank 0 and as rank 1 (the refinement itself stubbed
+    out: only the counts it is asked for are recorded). Would catch: a count drawn per scene or per rank (DDP ranks
+    out of step), a logged count that is not the one run, or one count run at every step."""
+    _model_file(tmp_path / "m.safetensors")
+    config = LearnedRefinerConfig(model=str(tmp_path / "m.safetensors"), out=str(tmp_path / "run"), hidden=4,
+                                  iterations="1,3", seed=3)
+    trained = build_model(TINY, config)
+    batch = make_source("procedural", DataSpec(views=(2,), sizes=((32, 48),), targets=1, batch_views=4), seed=3)(0)
+    assert batch.scenes == 2
+    latents = [torch.zeros(4, c, 2, 3) for c in TINY.codec_latent_channels]
+    ran = []
+
+    def record(model, images, cameras, lam, start, refiner, rdo, generator):
+        ran.append(rdo.steps)
+        return Refinement([z.detach() for z in start], None, None)
+
+    monkeypatch.setattr(learned_refiner, "learned_refine", record)
+    monkeypatch.setattr(learned_refiner.dist, "is_initialized", lambda: True)
+    logged = {}
+    for rank in (0, 1):
+        monkeypatch.setattr(learned_refiner.dist, "get_rank", lambda rank=rank: rank)
+        logged[rank] = [trained(batch, 64.0, latents, config, step)[1]["iterations"] for step in range(12)]
+    assert logged[0] == logged[1] and set(logged[0]) == {1.0, 3.0}
+    assert ran[0::2] == ran[1::2] and [float(r) for r in ran[0::2]] == logged[0] + logged[1]
 
 
 @needs_lpips
@@ -64,7 +97,7 @@ def test_the_target_loss_reaches_the_refiner_alone_and_logs_its_metrics(tmp_path
     or missing refiner metrics."""
     _model_file(tmp_path / "m.safetensors")
     config = LearnedRefinerConfig(model=str(tmp_path / "m.safetensors"), out=str(tmp_path / "run"), hidden=4,
-                                  iterations=2)
+                                  iterations="2")
     trained = build_model(TINY, config)
     assert isinstance(trained, RefinerTraining)
     batch = make_source("procedural", DataSpec(views=(2,), sizes=((32, 48),), targets=1), seed=3)(0)
@@ -85,7 +118,7 @@ def test_a_resumed_run_gives_the_same_loss_and_writes_a_refiner_for_the_model(tm
     start = _model_file(tmp_path / "m.safetensors")
     common = dict(model=str(tmp_path / "m.safetensors"), data="procedural", device="cpu", workers=0, hidden=4,
                   warmup_steps=10, lpips_weights=str(WEIGHTS), checkpoint_every=1, log_every=1, seed=3,
-                  iterations=2, ema_decay=0.0, sizes="32x48")
+                  iterations="2", ema_decay=0.0, sizes="32x48")
     train(LearnedRefinerConfig(out=str(tmp_path / "a"), steps=1, **common), progress=False)
     resumed = train(LearnedRefinerConfig(out=str(tmp_path / "a"), steps=2, **common), progress=False)
     direct = train(LearnedRefinerConfig(out=str(tmp_path / "b"), steps=2, **common), progress=False)

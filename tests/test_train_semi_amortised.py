@@ -18,7 +18,7 @@ from codecsplat_warp.model.rdo import rdo_config, refine_latents, rdo_loss, late
 from codecsplat_warp.nn.config import FEATURE_STRIDE, get_preset
 from train.checkpoint import latest_checkpoint, load_model_weights
 from train.data import DataSpec, make_source
-from train.semi_amortised import (INNER_LOGGED, SemiAmortisedConfig, build_model, draw_inner_steps, parse_args,
+from train.semi_amortised import (INNER_LOGGED, SemiAmortisedConfig, build_model, draw_count, parse_args,
                                   run_model_config, semi_amortised_loss, train)
 from train.stage1 import METRICS_FILE
 
@@ -57,9 +57,9 @@ def test_the_model_starts_from_the_init_file_with_only_the_named_modules_trainab
 def test_inner_step_counts_are_drawn_reproducibly_from_the_list_and_bad_options_fail():
     """Would catch: a draw that ignores the list or is not a function of (seed, step, rank, scene)."""
     counts = [0, 4, 9]
-    drawn = [draw_inner_steps(counts, 1, step, 0, 0) for step in range(60)]
-    assert set(drawn) == set(counts) and drawn == [draw_inner_steps(counts, 1, s, 0, 0) for s in range(60)]
-    assert drawn != [draw_inner_steps(counts, 2, s, 0, 0) for s in range(60)]
+    drawn = [draw_count(counts, 1, step, 0, 0) for step in range(60)]
+    assert set(drawn) == set(counts) and drawn == [draw_count(counts, 1, s, 0, 0) for s in range(60)]
+    assert drawn != [draw_count(counts, 2, s, 0, 0) for s in range(60)]
     for argv, match in ((["--inner-steps", "3,-1"], "inner-steps"), (["--inner-steps", "a"], "inner-steps"),
                         (["--inner-preset", "fast"], "inner-preset"), (["--inner-precision", "fp8"], "precision")):
         with pytest.raises(InputError, match=match):

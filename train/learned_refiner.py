@@ -7,25 +7,30 @@ update; at initialisation its iterations are the presets' Adam steps. Per traini
 
 1. the frozen model's amortised encoder and codec give the latents ``z_0`` (:meth:`CodecSplat.forward` with a
    lambda drawn as stage 2 draws it, without gradient);
-2. ``--iterations`` iterations of the refiner run on the context views from ``z_0``
+2. ``R`` iterations of the refiner run on the context views from ``z_0``
    (:func:`codecsplat_warp.model.rdo.learned_refine`, the code the encoder runs with a refiner: the loss,
-   learning-rate schedule and quantiser of ``--inner-preset`` with that many steps). The gradient input of each
-   iteration is detached (first order); the path through the refiner keeps its graph;
+   learning-rate schedule and quantiser of ``--inner-preset`` with ``R`` steps). ``R`` is drawn per training step
+   from the list ``--iterations`` (:func:`train.semi_amortised.draw_count`, a function of the seed and the step
+   alone: every scene of the step and every DDP rank runs the same count), so that one refiner learns every count
+   the encoder will run it at (one trained at 25 iterations alone beat Adam's steps at 25 and 50 but fell behind
+   them at 160, at a higher rate). The gradient input of each iteration is detached (first order); the path
+   through the refiner keeps its graph;
 3. the frozen decoder decodes ``z_R`` and stage 2's loss is taken on the *target* views
    (:func:`train.stage2.codec_loss`: render distortion, depth and rate terms), whose gradient reaches the refiner's
    weights alone, through every iteration.
 
-Besides stage 2's metrics the log holds the refiner's (:data:`REFINER_LOGGED`). The run folder's newest weights (the
-weight average's, :func:`train.checkpoint.weights_for_use`) are written as ``refiner.safetensors`` in ``--out`` when
-the run ends (at ``--steps``, at ``--time-limit-s`` or on SIGTERM), with the refiner's id and the model's
-(:func:`codecsplat_warp.model.rdo.save_refiner`); ``codecsplat bench rdo --refiner`` screens it.
+Besides stage 2's metrics the log holds the refiner's (:data:`REFINER_LOGGED`, ``iterations`` the step's ``R``).
+The run folder's newest weights (the weight average's, :func:`train.checkpoint.weights_for_use`) are written as
+``refiner.safetensors`` in ``--out`` when the run ends (at ``--steps``, at ``--time-limit-s`` or on SIGTERM), with
+the refiner's id and the model's (:func:`codecsplat_warp.model.rdo.save_refiner`); ``codecsplat bench rdo
+--refiner`` screens it.
 
 Everything else (data, checkpoints every ``--checkpoint-every`` steps and on SIGTERM or ``--time-limit-s``,
 resumption from ``--out``, DDP under torchrun, TensorBoard, metrics.jsonl) is stage 1's loop
 (:func:`train.stage1.train`)::
 
     torchrun --nproc_per_node 4 -m train.learned_refiner --data runs/scenes-256 --holdout ... \\
-        --iterations 8 --steps 2000 --out runs/refiner
+        --iterations 8,25,50,160 --steps 2000 --out runs/refiner
 """
 
 from __future__ import annotations
@@ -51,14 +56,15 @@ from codecsplat_warp.model.rdo import (LatentRefiner, RefinerConfig, learned_ref
 from codecsplat_warp.nn.config import ModelConfig
 
 from . import stage1, stage2
-from .semi_amortised import check_inner_preset, decode_latents, psnr_of, synchronize
 from .checkpoint import latest_checkpoint, model_file_config, read_weights, weights_for_use
 from .data import BatchSource, TrainingBatch
+from .semi_amortised import check_inner_preset, decode_latents, draw_count, parse_counts, psnr_of, synchronize
 
 REFINER_LOGGED = ("iterations", "context_gain", "target_gain", "target_psnr_amortised", "iterations_per_s")
-"""The refiner's metrics, logged beside stage 2's: its iterations per scene; the context views' PSNR gain over them
-(dB, of the loss's noisy-quantiser renders, first iteration against last); the targets' PSNR of the refined decode
-minus the amortised decode's (dB); the amortised decode's target PSNR (dB); iterations per second."""
+"""The refiner's metrics, logged beside stage 2's: its iterations per scene (the count ``R`` drawn for the step);
+the context views' PSNR gain over them (dB, of the loss's noisy-quantiser renders, first iteration against last);
+the targets' PSNR of the refined decode minus the amortised decode's (dB); the amortised decode's target PSNR (dB);
+iterations per second."""
 
 LOGGED = stage2.LOGGED + REFINER_LOGGED
 
@@ -82,7 +88,7 @@ class LearnedRefinerConfig(stage2.Stage2Config):
     beta: float | None = 1.3e-3
     views: str = "2"
     coded_every: int = 1000
-    iterations: int = 8
+    iterations: str = "8"
     inner_preset: str = "medium"
     hidden: int = 16
 
@@ -91,9 +97,11 @@ OPTION_HELP = {
     **stage2.OPTION_HELP,
     "model": "the frozen model the refiner is trained for: a model file (default: the shipped model)",
     "init": "a refiner file to start from (default: none, a fresh refiner whose iterations are Adam's steps)",
-    "iterations": "the refiner's iterations per scene (R): the target loss is taken at the last one",
+    "iterations": "comma list of the refiner's iteration counts R, one drawn per training step for all its scenes "
+                  "(the target loss is taken at the last iteration); list the counts the encoder will run it at, "
+                  "one twice to draw it twice as often",
     "inner_preset": "the encoder preset whose loss, learning rate and cross-view term the iterations use (medium or "
-                    "slow; its schedule spread over --iterations)",
+                    "slow; its schedule spread over the R iterations)",
     "hidden": "the refiner's GRU state channels per latent level",
     "codec_init": "not used by this stage",
     "codec_latent_channels": "not used by this stage",
@@ -114,15 +122,15 @@ class RefinerTraining(torch.nn.Module):
 
     def forward(self, batch: TrainingBatch, lam: float, latents: list[torch.Tensor], config: LearnedRefinerConfig,
                 step: int) -> tuple[list[torch.Tensor], dict]:
-        """Each scene of ``batch`` refined by ``config.iterations`` iterations from its slice of ``latents`` (per
-        level, [S*V,C_l,h_l,w_l], scene-major): the refined latents (the same shapes, with the graph to the
-        refiner's parameters) and the refiner's metrics (:data:`REFINER_LOGGED`, means over the scenes; the
-        target ones 0 here)."""
+        """Each scene of ``batch`` refined by ``R`` iterations from its slice of ``latents`` (per level,
+        [S*V,C_l,h_l,w_l], scene-major), ``R`` drawn from ``config.iterations`` for the training ``step`` (the
+        same on every rank): the refined latents (the same shapes, with the graph to the refiner's parameters)
+        and the refiner's metrics (:data:`REFINER_LOGGED`, means over the scenes; the target ones 0 here)."""
         rank = dist.get_rank() if dist.is_initialized() else 0
         views = batch.context_images.shape[0] // batch.scenes
         device = batch.context_images.device
-        rdo = rdo_config(config.inner_preset, steps=config.iterations, views=views, cuda_graphs=False,
-                         check_every=0)
+        iterations = draw_count(parse_counts(config.iterations, "--iterations", 1), config.seed, step, 0, 0)
+        rdo = rdo_config(config.inner_preset, steps=iterations, views=views, cuda_graphs=False, check_every=0)
         refined, gains = [], []
         synchronize(device)
         began = time.perf_counter()
@@ -136,8 +144,8 @@ class RefinerTraining(torch.nn.Module):
             if result.first is not None:
                 gains.append(psnr_of(result.last["mse"]) - psnr_of(result.first["mse"]))
         synchronize(device)
-        total = config.iterations * batch.scenes
-        metrics = {"iterations": float(config.iterations),
+        total = iterations * batch.scenes
+        metrics = {"iterations": float(iterations),
                    "context_gain": torch.stack(gains).mean() if gains else 0.0,
                    "target_gain": 0.0, "target_psnr_amortised": 0.0,
                    "iterations_per_s": total / max(time.perf_counter() - began, 1e-9) if total else 0.0}
@@ -237,8 +245,9 @@ def parse_args(argv: list[str] | None = None) -> LearnedRefinerConfig:
     """Command line -> :class:`LearnedRefinerConfig`; InputError for a bad refiner option."""
     config = stage1.parse_args(argv, LearnedRefinerConfig, build_parser())
     check_inner_preset(config.inner_preset)
-    if config.iterations < 1 or config.hidden < 1:
-        raise InputError("--iterations and --hidden must be >= 1")
+    parse_counts(config.iterations, "--iterations", 1)
+    if config.hidden < 1:
+        raise InputError("--hidden must be >= 1")
     if config.coded_every < 1:
         raise InputError("--coded-every must be >= 1")
     return config

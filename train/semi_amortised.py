@@ -104,19 +104,23 @@ OPTION_HELP = {
 """``--help`` text of every :class:`SemiAmortisedConfig` field."""
 
 
-def parse_inner_steps(text: str) -> list[int]:
-    """``"0,8,16,25"`` -> [0, 8, 16, 25]; InputError unless every entry is an integer >= 0."""
+def parse_counts(text: str, option: str, minimum: int) -> list[int]:
+    """A comma list of counts, ``"0,8,16,25"`` -> [0, 8, 16, 25] (repeats kept: they weigh the draw of
+    :func:`draw_count`); InputError naming the command-line ``option`` unless every entry is an integer >=
+    ``minimum``. The lists of ``--inner-steps`` here and ``--iterations`` of :mod:`train.learned_refiner`."""
+    message = f"{option} must be a comma list of integers >= {minimum}, got {text!r}"
     try:
         counts = [int(k) for k in text.split(",") if k.strip()]
     except ValueError:
-        raise InputError(f"--inner-steps must be a comma list of integers >= 0, got {text!r}") from None
-    if not counts or any(k < 0 for k in counts):
-        raise InputError(f"--inner-steps must be a comma list of integers >= 0, got {text!r}")
+        raise InputError(message) from None
+    if not counts or any(k < minimum for k in counts):
+        raise InputError(message)
     return counts
 
 
-def draw_inner_steps(counts: list[int], seed: int, step: int, rank: int, scene: int) -> int:
-    """The inner step count of one scene of a step: one of ``counts``, a function of (seed, step, rank, scene)."""
+def draw_count(counts: list[int], seed: int, step: int, rank: int, scene: int) -> int:
+    """One of ``counts``, uniformly, a function of (seed, step, rank, scene) alone: the inner step count of one
+    scene of a step here; with ``rank`` and ``scene`` 0, one count per step that every rank draws alike."""
     generator = torch.Generator().manual_seed(((seed * 1_000_003 + step) * 1009 + rank) * 101 + scene + 7)
     return counts[int(torch.randint(len(counts), (), generator=generator))]
 
@@ -151,13 +155,13 @@ def refine_scenes(model: CodecSplat, batch: TrainingBatch, lam: float, latents: 
     [S*V,C_l,h_l,w_l], scene-major); returns the refined latents (detached, the same shapes) and the inner loop's
     metrics (:data:`INNER_LOGGED`, the mean over the scenes; ``inner_steps`` a float)."""
     rank = dist.get_rank() if dist.is_initialized() else 0
-    counts = parse_inner_steps(config.inner_steps)
+    counts = parse_counts(config.inner_steps, "--inner-steps", 0)
     views = batch.context_images.shape[0] // batch.scenes
     device = batch.context_images.device
     refined, drawn, gains, seconds = [], [], [], 0.0
     for scene, cameras in enumerate(batch.scene_contexts()):
         rows = slice(scene * views, (scene + 1) * views)
-        steps = draw_inner_steps(counts, config.seed, step, rank, scene)
+        steps = draw_count(counts, config.seed, step, rank, scene)
         rdo = rdo_config(config.inner_preset, steps=steps, views=views, precision=config.inner_precision,
                          cuda_graphs=False, check_every=0)
         generator = torch.Generator(device=device).manual_seed(config.seed * 1_000_003 + step * 101 + scene)
@@ -263,7 +267,7 @@ def build_parser() -> argparse.ArgumentParser:
 def parse_args(argv: list[str] | None = None) -> SemiAmortisedConfig:
     """Command line -> :class:`SemiAmortisedConfig`; InputError for a bad inner-loop option."""
     config = stage1.parse_args(argv, SemiAmortisedConfig, build_parser())
-    parse_inner_steps(config.inner_steps)
+    parse_counts(config.inner_steps, "--inner-steps", 0)
     check_inner_preset(config.inner_preset)
     if config.inner_precision not in ("float32", "bfloat16"):
         raise InputError(f"--inner-precision must be float32 or bfloat16, got {config.inner_precision!r}")
