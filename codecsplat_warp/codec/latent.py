@@ -68,6 +68,13 @@ LAMBDA_MIN = 16.0
 LAMBDA_MAX = 1024.0
 """Largest lambda (highest rate); the stage-2 loss weighs distortion by lambda / LAMBDA_MAX."""
 
+
+def lambda_position(lam: float) -> float:
+    """Where ``lam`` lies on the coded range, log-linearly: ``log(lam / LAMBDA_MIN) / log(LAMBDA_MAX / LAMBDA_MIN)``,
+    0 at :data:`LAMBDA_MIN` and 1 at :data:`LAMBDA_MAX` (a float; outside [0, 1] for a lambda outside the range)."""
+    return math.log(lam / LAMBDA_MIN) / math.log(LAMBDA_MAX / LAMBDA_MIN)
+
+
 def check_lambda(lam: float) -> float:
     """``lam`` as a float; InputError unless it is finite and in [LAMBDA_MIN, LAMBDA_MAX]."""
     value = float(lam)
@@ -104,7 +111,7 @@ LAMBDA_FREQUENCIES = 4
 
 
 class LambdaEmbedding(nn.Module):
-    """e_lambda [E]: ``t = log(lam / LAMBDA_MIN) / log(LAMBDA_MAX / LAMBDA_MIN)``, its sines and cosines
+    """e_lambda [E]: ``t`` = :func:`lambda_position` of lambda, its sines and cosines
     (:data:`LAMBDA_FREQUENCIES`) and ``t`` itself -> 2-layer MLP."""
 
     def __init__(self, dim: int):
@@ -115,8 +122,7 @@ class LambdaEmbedding(nn.Module):
 
     def forward(self, lam: float) -> torch.Tensor:
         weight = self.mlp[0].weight
-        t = math.log(lam / LAMBDA_MIN) / math.log(LAMBDA_MAX / LAMBDA_MIN)
-        t = torch.tensor([t], dtype=weight.dtype, device=weight.device)
+        t = torch.tensor([lambda_position(lam)], dtype=weight.dtype, device=weight.device)
         angles = t * self.frequencies.to(weight.dtype)
         return self.mlp(torch.cat([t, angles.sin(), angles.cos()]))
 
