@@ -1,12 +1,16 @@
 """The learned latent refiner (codecsplat_warp.model.rdo.refiner) on the tiny preset: a fresh one is the presets'
-Adam, the target gradient reaches its weights through the iterations and never the model's, its file round-trips
-and refuses another model, the encoder runs it, and ``bench rdo --refiner`` adds its rows and times its iteration."""
+Adam, the target gradient reaches its weights through the iterations and never the model's, a trained one reads the
+run's lambda, its file round-trips and refuses another model or an older format, the encoder runs it, and ``bench
+rdo --refiner`` adds its rows and times its iteration."""
 
 from __future__ import annotations
+
+import json
 
 import pytest
 import torch
 from conftest import tiny_coding_model
+from safetensors.torch import save_file
 from test_cli_commands import write_scene
 
 from codecsplat_warp.bench import rdo as bench_rdo
@@ -18,7 +22,7 @@ from codecsplat_warp.metrics.lpips import WEIGHTS_ENV
 from codecsplat_warp.model.codecsplat import model_id
 from codecsplat_warp.model.pretrained import save_pretrained
 from codecsplat_warp.model.rdo import (LatentRefiner, RefinerConfig, latent_target, learned_refine, load_refiner,
-                                       rdo_config, rdo_loss, refine_latents, refiner_id, save_refiner)
+                                       rdo_config, rdo_loss, refine_latents, refiner_id, refiner_step, save_refiner)
 
 LAM = 1024.0
 
@@ -86,9 +90,37 @@ def test_the_loss_at_the_last_iteration_reaches_every_refiner_weight_and_no_mode
         model.requires_grad_(False)
 
 
-def test_a_refiner_file_round_trips_and_refuses_another_model(scene, tmp_path):
-    """Would catch: weights or config lost on the way, an id that ignores the weights, or a refiner applied to a
-    model it was not trained for."""
+def test_a_trained_refiner_reads_the_runs_lambda(scene, monkeypatch):
+    """The same latents, gradient and progress at lambda 16 and 1024 give other moves (at one lambda, the same),
+    and a step hands the refiner its target's lambda. Would catch: a lambda channel left out of the inputs or
+    constant, or a step that passes the refiner another lambda than the run's."""
+    model, images, cameras, latents = scene
+    refiner = _refiner(latents, seed=7)
+    torch.manual_seed(8)
+    grads = [torch.randn_like(z) for z in latents]
+
+    def moves(lam: float) -> list[torch.Tensor]:
+        with torch.no_grad():
+            return refiner([z.clone() for z in latents], grads, refiner.start(latents), 0.1, 0.5, lam)
+
+    low, again, high = moves(16.0), moves(16.0), moves(1024.0)
+    for a, b, c in zip(low, again, high):
+        assert torch.equal(a, b) and float((a - c).abs().max()) > 1e-4
+    seen = []
+    forward = refiner.forward
+    monkeypatch.setattr(refiner, "forward", lambda *args: seen.append(args[-1]) or forward(*args))
+    config = rdo_config("medium", steps=1, views=2, cuda_graphs=False, check_every=0)
+    target = latent_target(model, images, cameras, 64.0, latents, config)
+    with torch.no_grad():
+        refiner_step(model, refiner, latents, refiner.start(latents), target, config, torch.Generator().manual_seed(0),
+                     0.1, 0.0)
+    assert seen == [64.0]
+
+
+def test_a_refiner_file_round_trips_and_refuses_another_model_or_format(scene, tmp_path):
+    """The older format is a file of format 1 as it was written (no lambda channel: each cell's input projection one
+    channel narrower). Would catch: weights or config lost on the way, an id that ignores the weights, a refiner
+    applied to a model it was not trained for, or an old file read as a new one."""
     model, _, _, latents = scene
     refiner = _refiner(latents, seed=3)
     identity = save_refiner(refiner, tmp_path / "r.safetensors", model_id(model))
@@ -107,6 +139,14 @@ def test_a_refiner_file_round_trips_and_refuses_another_model(scene, tmp_path):
         load_refiner(tmp_path / "model.safetensors")
     with pytest.raises(RefinerError, match="not found"):
         load_refiner(tmp_path / "missing.safetensors")
+    old = {name: value[:, :-1].contiguous() if name.endswith("project.weight") else value.contiguous()
+           for name, value in refiner.state_dict().items()}
+    save_file(old, str(tmp_path / "old.safetensors"),
+              metadata={"format": "codecsplat-latent-refiner/1", "config": json.dumps(refiner.config.to_dict()),
+                        "refiner_id": identity, "model_id": model_id(model)})
+    with pytest.raises(RefinerError, match="format codecsplat-latent-refiner/1, this version reads "
+                                           "codecsplat-latent-refiner/2 only"):
+        load_refiner(tmp_path / "old.safetensors", model_id(model))
 
 
 def test_the_encoder_runs_the_refiner_and_its_bitstream_decodes(scene):

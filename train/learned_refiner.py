@@ -2,11 +2,13 @@
 target views in the loss; the model (encoder and decoder) stays frozen, so bitstreams and decoders do not change.
 
 The refiner (:mod:`codecsplat_warp.model.rdo.refiner`) reads, per latent level and iteration, the latents and the
-gradient of the presets' own context loss (normalised by Adam's moments) with its GRU state, and proposes the
-update; at initialisation its iterations are the presets' Adam steps. Per training step and scene:
+gradient of the presets' own context loss (normalised by Adam's moments), the run's progress and its lambda, with its
+GRU state, and proposes the update; at initialisation its iterations are the presets' Adam steps. Per training step
+and scene:
 
 1. the frozen model's amortised encoder and codec give the latents ``z_0`` (:meth:`CodecSplat.forward` with a
-   lambda drawn as stage 2 draws it, without gradient);
+   lambda drawn as stage 2 draws it, log-uniform in [LAMBDA_MIN, LAMBDA_MAX]; the refiner reads the same lambda),
+   without gradient;
 2. ``R`` iterations of the refiner run on the context views from ``z_0``
    (:func:`codecsplat_warp.model.rdo.learned_refine`, the code the encoder runs with a refiner: the loss,
    learning-rate schedule and quantiser of ``--inner-preset`` with ``R`` steps). ``R`` is drawn per training step

@@ -9,8 +9,12 @@ grid, float32, one quantisation step = 1):
 2. Adam's moments of ``g`` (``m``, ``v``; torch's defaults beta1 0.9, beta2 0.999, eps 1e-8, bias-corrected) give
    the Adam direction ``d = m^ / (sqrt(v^) + eps)`` and the normalised gradient ``g / (sqrt(v^) + eps)``.
 3. A convolutional GRU per level (:class:`LevelCell`) reads ``z`` over the per-channel RMS of the amortised
-   latents, ``z - z_0``, ``d``, the normalised gradient and the run's progress in [0, 1] (a constant channel),
-   with its hidden state, and proposes ``delta`` [V,C_l,h_l,w_l].
+   latents, ``z - z_0``, ``d``, the normalised gradient, the run's progress in [0, 1] and its lambda's position
+   in [0, 1] (:func:`~codecsplat_warp.codec.latent.lambda_position`, log-linear from LAMBDA_MIN to LAMBDA_MAX),
+   the last two as constant channels, with its hidden state, and proposes ``delta`` [V,C_l,h_l,w_l]. The lambda
+   channel is there because the other inputs are invariant to the loss's scale: without it the refiner cannot
+   tell a run at a small lambda, where bytes are dear, from one at a large lambda (trained without it, it
+   proposed about the same moves at every lambda and, at lambda 128, spent far more bytes than Adam's steps).
 4. ``z <- clamp(z + lr_i * (delta - exp(s_l) * d), +-LATENT_LIMIT)``, with ``lr_i`` the presets' learning-rate
    schedule at iteration ``i`` and ``s_l`` [C_l] a learned log step size per channel.
 
@@ -20,9 +24,9 @@ arithmetic): training starts from the optimiser it is meant to beat. The path ``
 its graph, so the target views' loss at ``z_R`` reaches the network's weights through every iteration (truncated
 where the gradient input is detached, as learned optimisers and RAFT-style refiners are trained).
 
-A refiner is stored as safetensors (:func:`save_refiner`) with its own id (:func:`refiner_id`) and the id of the
-model it was trained for; :func:`load_refiner` refuses it for another model (:class:`~codecsplat_warp.errors.
-RefinerError`, naming both ids).
+A refiner is stored as safetensors (:func:`save_refiner`, format :data:`REFINER_FORMAT`) with its own id
+(:func:`refiner_id`) and the id of the model it was trained for; :func:`load_refiner` refuses it for another model
+or in another format (:class:`~codecsplat_warp.errors.RefinerError`, naming both ids or both formats).
 """
 
 from __future__ import annotations
@@ -38,12 +42,14 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 from torch import nn
 
+from ...codec.latent import lambda_position
 from ...errors import InputError, RefinerError
 from .loss import RDOTarget, rdo_loss
 from .presets import LATENT_LIMIT, RDOConfig
 
-REFINER_FORMAT = "codecsplat-latent-refiner/1"
-"""The ``format`` entry of a refiner file's metadata."""
+REFINER_FORMAT = "codecsplat-latent-refiner/2"
+"""The ``format`` entry of a refiner file's metadata. Format 1 had no lambda channel (its cells read one input
+channel fewer); its files are refused."""
 
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
@@ -51,7 +57,11 @@ ADAM_EPS = 1e-8
 
 INPUTS_PER_CHANNEL = 4
 """Inputs of a level's cell per latent channel: the scaled latents, their change, the Adam direction and the
-normalised gradient (the progress channel comes on top)."""
+normalised gradient (:data:`RUN_INPUTS` come on top)."""
+
+RUN_INPUTS = 2
+"""Constant input channels of a level's cell, one value per run and iteration: the run's progress and its
+lambda's position, both in [0, 1]."""
 
 
 @dataclass(frozen=True)
@@ -75,13 +85,14 @@ class RefinerConfig:
 
 
 class LevelCell(nn.Module):
-    """One latent level's convolutional GRU: inputs [V, INPUTS_PER_CHANNEL*C+1, h, w] projected to ``hidden``
-    channels (1x1), the gates and candidate (3x3) over inputs and state, and the proposal ``delta`` [V,C,h,w]
-    (3x3, zero at initialisation). All float32."""
+    """One latent level's convolutional GRU: inputs [V, INPUTS_PER_CHANNEL*C+RUN_INPUTS, h, w] projected to
+    ``hidden`` channels (1x1), the gates and candidate (3x3) over inputs and state, and the proposal ``delta``
+    [V,C,h,w] (3x3, zero at initialisation, so that the inputs' weights, the lambda channel's included, may start
+    anywhere). All float32."""
 
     def __init__(self, channels: int, hidden: int):
         super().__init__()
-        self.project = nn.Conv2d(INPUTS_PER_CHANNEL * channels + 1, hidden, 1)
+        self.project = nn.Conv2d(INPUTS_PER_CHANNEL * channels + RUN_INPUTS, hidden, 1)
         self.gates = nn.Conv2d(2 * hidden, 2 * hidden, 3, padding=1)
         self.candidate = nn.Conv2d(2 * hidden, hidden, 3, padding=1)
         self.head = nn.Conv2d(hidden, channels, 3, padding=1)
@@ -133,20 +144,24 @@ class LatentRefiner(nn.Module):
         return RefinerState(start, scale, zeros, [z.clone() for z in zeros], hidden)
 
     def forward(self, latents: list[torch.Tensor], grads: list[torch.Tensor], state: RefinerState, lr: float,
-                progress: float) -> list[torch.Tensor]:
-        """The moved latents (not yet clamped) from ``latents`` and their loss's ``grads`` (detached, finite),
-        the learning rate ``lr`` of this iteration and the run's ``progress`` in [0, 1]; updates ``state``."""
+                progress: float, lam: float) -> list[torch.Tensor]:
+        """The moved latents (not yet clamped) from ``latents`` and their loss's ``grads`` (per level
+        [V,C_l,h_l,w_l] float32; the gradients detached and finite), the learning rate ``lr`` of this iteration,
+        the run's ``progress`` in [0, 1] and its rate-distortion ``lam`` (in [LAMBDA_MIN, LAMBDA_MAX]); updates
+        ``state``."""
         beta1, beta2 = ADAM_BETAS
         state.count += 1
         correction1, correction2 = 1 - beta1 ** state.count, 1 - beta2 ** state.count
+        run = (progress, lambda_position(lam))
         moved = []
         for level, (z, g) in enumerate(zip(latents, grads)):
             first = state.first[level] = beta1 * state.first[level] + (1 - beta1) * g
             second = state.second[level] = beta2 * state.second[level] + (1 - beta2) * g * g
             denominator = (second / correction2).sqrt() + ADAM_EPS
             direction = (first / correction1) / denominator
+            constants = [z.new_full((z.shape[0], 1, *z.shape[2:]), value) for value in run]
             inputs = torch.cat([z / state.scale[level], z - state.start[level], direction, g / denominator,
-                                z.new_full((z.shape[0], 1, *z.shape[2:]), progress)], 1)
+                                *constants], 1)
             delta, state.hidden[level] = self.cells[level](inputs, state.hidden[level])
             step = self.log_step[level].exp()[None, :, None, None]
             moved.append(z + lr * (delta - step * direction))
@@ -158,9 +173,10 @@ def refiner_step(model, refiner: LatentRefiner, latents: list[torch.Tensor], sta
                  decoder=None, temperature: float | None = None) -> tuple[list[torch.Tensor], dict]:
     """One iteration of the refiner (the module docstring): the context loss's gradient at a detached copy of
     ``latents`` (:func:`~.loss.rdo_loss` with ``config``, ``generator``, ``decoder`` and ``temperature`` as
-    :func:`~.loop.rdo_step` uses them; the model put in training mode), then the refiner's move, clamped to
-    +-:data:`~.presets.LATENT_LIMIT`. Returns the new latents (with the graph to the refiner's parameters and
-    to ``latents`` where grad mode is on) and the loss's parts before the move (detached 0-dim tensors)."""
+    :func:`~.loop.rdo_step` uses them; the model put in training mode), then the refiner's move at the run's
+    lambda ``target.lam``, clamped to +-:data:`~.presets.LATENT_LIMIT`. Returns the new latents (with the graph to
+    the refiner's parameters and to ``latents`` where grad mode is on) and the loss's parts before the move
+    (detached 0-dim tensors)."""
     if not model.training:
         model.train()
     leaves = [z.detach().requires_grad_(True) for z in latents]
@@ -168,7 +184,7 @@ def refiner_step(model, refiner: LatentRefiner, latents: list[torch.Tensor], sta
         loss, parts = rdo_loss(model, leaves, target, config, generator, decoder=decoder, temperature=temperature)
         grads = torch.autograd.grad(loss, leaves)
     grads = [torch.nan_to_num(g, nan=0.0, posinf=0.0, neginf=0.0) for g in grads]
-    moved = refiner(latents, grads, state, lr, progress)
+    moved = refiner(latents, grads, state, lr, progress, target.lam)
     return [z.clamp(-LATENT_LIMIT, LATENT_LIMIT) for z in moved], {k: v.detach() for k, v in parts.items()}
 
 
@@ -215,9 +231,13 @@ def load_refiner(path, model_id: str | None = None, device=None) -> tuple[Latent
             tensors = {name: f.get_tensor(name) for name in f.keys()}  # noqa: SIM118 (safe_open is not iterable)
     except (SafetensorError, OSError) as exc:
         raise RefinerError(f"{path} is not a readable safetensors file: {exc}") from None
-    if metadata.get("format") != REFINER_FORMAT:
-        raise RefinerError(f"{path}: not a latent refiner file (format {metadata.get('format')!r}, expected "
-                           f"{REFINER_FORMAT})")
+    found = metadata.get("format")
+    if found != REFINER_FORMAT:
+        if str(found).startswith(REFINER_FORMAT.rsplit("/", 1)[0] + "/"):
+            raise RefinerError(f"{path}: a latent refiner of format {found}, this version reads "
+                               f"{REFINER_FORMAT} only: train one again with python -m "
+                               f"train.learned_refiner")
+        raise RefinerError(f"{path}: not a latent refiner file (format {found!r}, expected {REFINER_FORMAT})")
     try:
         refiner = LatentRefiner(RefinerConfig.from_dict(json.loads(metadata["config"])))
         refiner.load_state_dict(tensors)
