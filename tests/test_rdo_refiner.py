@@ -192,3 +192,33 @@ def test_bench_rdo_adds_the_refiner_rows_and_times_its_iteration(scene, tmp_path
     with pytest.raises(RefinerError, match="trained for model"):
         bench_rdo.run(build_parser().parse_args(common[:-1] + [str(tmp_path / "other.safetensors"), "--steps", "0",
                                                                "--refiner-steps", "1"]))
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU visible to torch")
+def test_on_cuda_the_graphed_encoder_runs_a_fresh_refiner_as_adams_steps_and_a_changed_one_decodes(scene):
+    """The encoder on CUDA with its decoder and loss as CUDA graphs (the default there). Would catch: a refiner
+    iteration that misses the graphed decoder's gradient or reads stale static tensors, or a refiner left on the
+    CPU while the latents are on the GPU."""
+    model, images, cameras, latents = scene
+    device = torch.device("cuda")
+    model = model.to(device)
+    try:
+        images, cameras = images.to(device), cameras.to(device)
+        amortised = model.encode_scene(images, cameras, LAM, steps=0, seed=1)
+        adam = model.encode_scene(images, cameras, LAM, steps=3, seed=1)
+        fresh = model.encode_scene(images, cameras, LAM, steps=3, seed=1, refiner=_refiner(latents).to(device))
+        assert fresh.rdo.steps == 3
+
+        def share_moved(a, b) -> float:
+            return float(sum((x != y).sum() for x, y in zip(a.latents, b.latents))) / sum(x.numel() for x in a.latents)
+
+        # Adam's arithmetic on the GPU may round a few latents the other way: the same moves, up to a few ties
+        assert share_moved(fresh, adam) <= 0.01 < share_moved(fresh, amortised)
+        changed = model.encode_scene(images, cameras, LAM, steps=3, seed=1,
+                                     refiner=_refiner(latents, seed=5).to(device))
+        assert changed.data != adam.data
+        for coded, decoded in zip(changed.latents, model.decode_scene(changed.data).latents):
+            assert torch.equal(coded.cpu(), decoded.cpu())
+    finally:
+        model.to("cpu")
