@@ -141,7 +141,7 @@ def viewer(folder: pathlib.Path, *args: str):
     out, err = folder / "view.out", folder / "view.err"
     command = [sys.executable, "-m", "codecsplat_warp.cli", "view", *args, "--port", "0", "--device", "cpu", "--json"]
     with open(out, "w") as stdout, open(err, "w") as stderr:
-        process = subprocess.Popen(command, stdout=stdout, stderr=stderr, cwd=folder)
+        process = subprocess.Popen(command, stdout=stdout, stderr=stderr, cwd=folder, preexec_fn=_interruptible)
     server = Server(process, {}, err)
     try:
         server.summary = wait_until(lambda: _summary(out) if process.poll() is None else _exited(process, err),
@@ -150,6 +150,13 @@ def viewer(folder: pathlib.Path, *args: str):
     finally:
         server.stop()
     assert "Traceback" not in err.read_text(), err.read_text()
+
+
+def _interruptible() -> None:
+    """In the server's process before it runs: Ctrl-C's default disposition, whatever the test runner's. A runner
+    started as a background job of a script ignores SIGINT and its children inherit that, so the server's Python
+    would never see Ctrl-C (as a user's server started that way would not)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def _summary(out: pathlib.Path) -> dict | None:
