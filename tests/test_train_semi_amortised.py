@@ -46,9 +46,16 @@ def test_the_model_starts_from_the_init_file_with_only_the_named_modules_trainab
     for name, value in start.state_dict().items():
         assert torch.equal(model.state_dict()[name], value), name
     assert {n.split(".")[0] for n, p in model.named_parameters() if p.requires_grad} == {"codec", "gs_head"}
-    with pytest.raises(InputError, match="not a module"):
-        build_model(TINY, SemiAmortisedConfig(init=str(tmp_path / "m.safetensors"), out=str(tmp_path / "r2"),
-                                              train_modules="codec,nothing"))
+    decoder_side = build_model(TINY, SemiAmortisedConfig(init=str(tmp_path / "m.safetensors"),
+                                                         out=str(tmp_path / "r1"),
+                                                         train_modules="codec.synthesis,gs_head"))
+    trained = {n for n, p in decoder_side.named_parameters() if p.requires_grad}
+    assert trained and all(n.startswith(("codec.synthesis.", "gs_head.")) for n in trained)
+    assert any(n.startswith("codec.synthesis.") for n in trained)
+    for bad in ("codec,nothing", "codec.nothing", "codec.synthesis.out.weight", ""):
+        with pytest.raises(InputError, match="not a module"):
+            build_model(TINY, SemiAmortisedConfig(init=str(tmp_path / "m.safetensors"), out=str(tmp_path / "r2"),
+                                                  train_modules=bad))
     (tmp_path / "bad.safetensors").write_bytes(b"not a model")
     with pytest.raises(DataError, match="not a CodecSplat model file"):
         run_model_config(SemiAmortisedConfig(init=str(tmp_path / "bad.safetensors"), out=str(tmp_path / "r3")))

@@ -95,7 +95,8 @@ OPTION_HELP = {
                     "learning rate and cross-view term, with K steps)",
     "inner_precision": "precision of the inner optimisation's networks: float32 (as the presets) or bfloat16",
     "train_modules": "comma list of the model's modules that train (codec, depth_head, refine_post, gs_head, "
-                     "refine_pre, feat_head, mvenc)",
+                     "refine_pre, feat_head, mvenc), or a dotted path to a part of one: codec.synthesis is the "
+                     "codec's decoder side, so that with the rest of the codec frozen the bytes stay the model's",
     "codec_init": "not used by this stage",
     "codec_latent_channels": "not used by this stage",
     "codec_finest_stride": "not used by this stage",
@@ -228,13 +229,25 @@ def build_model(model_config: ModelConfig, config: SemiAmortisedConfig) -> Codec
                 from None
     model.requires_grad_(False)
     for name in config.train_modules.split(","):
-        module = getattr(model, name.strip(), None) if name.strip() else None
-        if not isinstance(module, torch.nn.Module):
+        module = trained_module(model, name.strip())
+        if module is None:
             raise InputError(f"--train-modules {name!r} is not a module of the model")
         module.requires_grad_(True)
     if model.mvenc.mono_backbone is not None:
         model.mvenc.mono_backbone.requires_grad_(False)
     return model
+
+
+def trained_module(model: CodecSplat, name: str) -> torch.nn.Module | None:
+    """The module of ``model`` named ``name``: a top-level one (``gs_head``) or a dotted path to one inside it
+    (``codec.synthesis``, the codec's decoder side, which the bytes do not depend on); None when there is none."""
+    if not name:
+        return None
+    try:
+        module = model.get_submodule(name)
+    except AttributeError:
+        return None
+    return module if isinstance(module, torch.nn.Module) else None
 
 
 def run_model_config(config: SemiAmortisedConfig) -> ModelConfig:
