@@ -25,15 +25,18 @@ from codecsplat_warp.errors import DataError, InputError, PortInUseError, Viewer
 from codecsplat_warp.export.ply import write_ply
 from codecsplat_warp.gaussians import SH_C0, SH_C1, Gaussians
 from codecsplat_warp.model.prune import prune_gaussians
-from codecsplat_warp.view import inputs as view_inputs
-from codecsplat_warp.view import serve as view_serve
-from codecsplat_warp.view.app import Viewer
-from codecsplat_warp.view.geometry import (REFERENCE_WXYZ, browser_camera, framing_camera, splat_arrays,
-                                           viewer_frame)
-from codecsplat_warp.view.inputs import (ENCODE_PHASES, encode_source, input_kind, read_bitstream, read_gaussians,
-                                         scene_source)
-from codecsplat_warp.view.ports import choose_port
-from codecsplat_warp.view.worker import LatestWork
+
+pytest.importorskip("viser", reason="viser is not installed (the README's install has it; a bare kit, such as the GPU "
+                                    "machines', may not)")
+from codecsplat_warp.view import inputs as view_inputs  # noqa: E402
+from codecsplat_warp.view import serve as view_serve  # noqa: E402
+from codecsplat_warp.view.app import Viewer  # noqa: E402
+from codecsplat_warp.view.geometry import (REFERENCE_WXYZ, browser_camera, framing_camera,  # noqa: E402
+                                           splat_arrays, viewer_frame)
+from codecsplat_warp.view.inputs import (ENCODE_PHASES, encode_source, input_kind, read_bitstream,  # noqa: E402
+                                         read_gaussians, scene_source)
+from codecsplat_warp.view.ports import choose_port  # noqa: E402
+from codecsplat_warp.view.worker import LatestWork  # noqa: E402
 
 WIDTH, HEIGHT = 48, 32
 
