@@ -27,14 +27,19 @@ from codecsplat_warp.model.rdo import (LatentRefiner, RefinerConfig, latent_targ
 LAM = 1024.0
 
 
-@pytest.fixture(scope="module")
-def scene():
-    model = tiny_coding_model(0)
+def _scene_on(device: str):
+    """The tiny coding model, a 2-view procedural scene (48x32) and its amortised latents, all on ``device``."""
+    model = tiny_coding_model(0).to(device)
     s = procedural_scene(3, ProceduralConfig(width=48, height=32, num_views=2, texture_size=16))
-    images, cameras = s.images.float() / 255.0, s.cameras.to(dtype=torch.float32)
+    images, cameras = s.images.float().to(device) / 255.0, s.cameras.to(device=device, dtype=torch.float32)
     with torch.no_grad():
         latents = model(images, cameras, lam=LAM)["latents"]
     return model, images, cameras, latents
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return _scene_on("cpu")
 
 
 def _refiner(latents, seed: int | None = None) -> LatentRefiner:
@@ -196,29 +201,25 @@ def test_bench_rdo_adds_the_refiner_rows_and_times_its_iteration(scene, tmp_path
 
 @pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU visible to torch")
-def test_on_cuda_the_graphed_encoder_runs_a_fresh_refiner_as_adams_steps_and_a_changed_one_decodes(scene):
-    """The encoder on CUDA with its decoder and loss as CUDA graphs (the default there). Would catch: a refiner
-    iteration that misses the graphed decoder's gradient or reads stale static tensors, or a refiner left on the
-    CPU while the latents are on the GPU."""
-    model, images, cameras, latents = scene
+def test_on_cuda_the_graphed_encoder_runs_a_fresh_refiner_as_adams_steps_and_a_changed_one_decodes():
+    """The encoder on CUDA with its decoder and loss as CUDA graphs (the default there), every Warp kernel on CUDA
+    (the GPU machines' Warp compiles no CPU kernels). Would catch: a refiner iteration that misses the graphed
+    decoder's gradient or reads stale static tensors, or a refiner left on the CPU while the latents are on the
+    GPU."""
+    model, images, cameras, latents = _scene_on("cuda")
     device = torch.device("cuda")
-    model = model.to(device)
-    try:
-        images, cameras = images.to(device), cameras.to(device)
-        amortised = model.encode_scene(images, cameras, LAM, steps=0, seed=1)
-        adam = model.encode_scene(images, cameras, LAM, steps=3, seed=1)
-        fresh = model.encode_scene(images, cameras, LAM, steps=3, seed=1, refiner=_refiner(latents).to(device))
-        assert fresh.rdo.steps == 3
+    amortised = model.encode_scene(images, cameras, LAM, steps=0, seed=1)
+    adam = model.encode_scene(images, cameras, LAM, steps=3, seed=1)
+    fresh = model.encode_scene(images, cameras, LAM, steps=3, seed=1, refiner=_refiner(latents).to(device))
+    assert fresh.rdo.steps == 3
 
-        def share_moved(a, b) -> float:
-            return float(sum((x != y).sum() for x, y in zip(a.latents, b.latents))) / sum(x.numel() for x in a.latents)
+    def share_moved(a, b) -> float:
+        return float(sum((x != y).sum() for x, y in zip(a.latents, b.latents))) / sum(x.numel() for x in a.latents)
 
-        # Adam's arithmetic on the GPU may round a few latents the other way: the same moves, up to a few ties
-        assert share_moved(fresh, adam) <= 0.01 < share_moved(fresh, amortised)
-        changed = model.encode_scene(images, cameras, LAM, steps=3, seed=1,
-                                     refiner=_refiner(latents, seed=5).to(device))
-        assert changed.data != adam.data
-        for coded, decoded in zip(changed.latents, model.decode_scene(changed.data).latents):
-            assert torch.equal(coded.cpu(), decoded.cpu())
-    finally:
-        model.to("cpu")
+    # Adam's arithmetic on the GPU may round a few latents the other way: the same moves, up to a few ties
+    assert share_moved(fresh, adam) <= 0.01 < share_moved(fresh, amortised)
+    changed = model.encode_scene(images, cameras, LAM, steps=3, seed=1,
+                                 refiner=_refiner(latents, seed=5).to(device))
+    assert changed.data != adam.data
+    for coded, decoded in zip(changed.latents, model.decode_scene(changed.data).latents):
+        assert torch.equal(coded.cpu(), decoded.cpu())
