@@ -68,7 +68,8 @@ def test_inner_step_counts_are_drawn_reproducibly_from_the_list_and_bad_options_
     assert set(drawn) == set(counts) and drawn == [draw_count(counts, 1, s, 0, 0) for s in range(60)]
     assert drawn != [draw_count(counts, 2, s, 0, 0) for s in range(60)]
     for argv, match in ((["--inner-steps", "3,-1"], "inner-steps"), (["--inner-steps", "a"], "inner-steps"),
-                        (["--inner-preset", "fast"], "inner-preset"), (["--inner-precision", "fp8"], "precision")):
+                        (["--inner-preset", "fast"], "inner-preset"), (["--inner-precision", "fp8"], "precision"),
+                        (["--encoder-gradient", "both"], "encoder-gradient")):
         with pytest.raises(InputError, match=match):
             parse_args(argv)
 
@@ -122,6 +123,36 @@ def test_the_loss_decodes_the_refined_latents_and_its_gradient_reaches_decoder_a
             assert reached and any(float(g.abs().sum()) > 0 for g in reached), (steps, part)
     assert metrics["inner_steps"] == 4.0 and float(metrics["context_gain"]) > 0
     assert losses["4"] != pytest.approx(losses["0"], rel=1e-6)
+
+
+@needs_lpips
+def test_with_the_encoder_gradient_amortised_only_the_decoder_learns_from_refined_latents(tmp_path):
+    """``--encoder-gradient amortised``: with K inner steps the loss is the same as the straight-through one, the
+    decoder's gradient is the same, and the encoder (the codec's analysis) gets exactly zero, while every trained
+    parameter stays in the graph (DDP). Would catch: an encoder still pushed towards the refined latents, or a
+    loss of another decode."""
+    _model_file(tmp_path / "m.safetensors")
+    model = build_model(TINY, SemiAmortisedConfig(init=str(tmp_path / "m.safetensors"), out=str(tmp_path / "run")))
+    model.train()
+    lpips = LPIPS(weights_dir=WEIGHTS)
+    batch = _batch()
+    runs = {}
+    for mode in ("refined", "amortised"):
+        torch.manual_seed(0)
+        model.zero_grad(set_to_none=True)
+        loss, _ = semi_amortised_loss(model, lpips, batch, SemiAmortisedConfig(inner_steps="3", encoder_gradient=mode),
+                                      step=4)
+        loss.backward()
+        runs[mode] = (float(loss.detach()), {n: p.grad.clone() for n, p in model.named_parameters()
+                                             if p.requires_grad and p.grad is not None})
+    (refined_loss, refined), (amortised_loss, amortised) = runs["refined"], runs["amortised"]
+    assert amortised_loss == pytest.approx(refined_loss, rel=1e-6)
+    assert set(amortised) == {n for n, p in model.named_parameters() if p.requires_grad}
+    analysis = [n for n in amortised if n.startswith("codec.analysis")]
+    assert analysis and all(float(amortised[n].abs().sum()) == 0 for n in analysis)
+    assert any(float(refined[n].abs().sum()) > 0 for n in analysis)
+    for n in (n for n in amortised if n.startswith(("codec.synthesis", "depth_head"))):
+        torch.testing.assert_close(amortised[n], refined[n], rtol=1e-4, atol=1e-7)
 
 
 @needs_lpips

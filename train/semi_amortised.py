@@ -17,7 +17,10 @@ test time): per step and scene,
 The gradient is first-order through the inner loop: the refined latents enter the decoder as
 ``z + stop_gradient(z_K - z)``, so the decoder (codec top-down pass and synthesis, depth head, R_post; the modules of
 ``--train-modules``) learns to render the targets from the latents the optimisation reaches, and the amortised
-encoder's analysis and posterior receive the decoder's gradient at ``z_K`` as if it were at ``z``. The optimisation
+encoder's analysis and posterior receive the decoder's gradient at ``z_K`` as if it were at ``z``. With
+``--encoder-gradient amortised`` the refined latents enter as constants instead: the encoder then learns from the
+draws with ``K = 0`` alone (stage 2's objective, so that ``fast``'s latents are not pushed towards the refined ones,
+which cost more bytes), and the decoder from every draw. The optimisation
 pays for its bytes: the rate term is the refined latents' estimated bits. A model trained so decodes with the
 same decoder code and bitstream format, but its weights change: it gets a new model id.
 
@@ -84,7 +87,11 @@ class SemiAmortisedConfig(stage2.Stage2Config):
     inner_preset: str = "medium"
     inner_precision: str = "float32"
     train_modules: str = DEFAULT_TRAIN_MODULES
+    encoder_gradient: str = "refined"
 
+
+ENCODER_GRADIENTS = ("refined", "amortised")
+"""``--encoder-gradient``'s choices (see the module docstring)."""
 
 OPTION_HELP = {
     **stage2.OPTION_HELP,
@@ -97,6 +104,9 @@ OPTION_HELP = {
     "train_modules": "comma list of the model's modules that train (codec, depth_head, refine_post, gs_head, "
                      "refine_pre, feat_head, mvenc), or a dotted path to a part of one: codec.synthesis is the "
                      "codec's decoder side, so that with the rest of the codec frozen the bytes stay the model's",
+    "encoder_gradient": "where the amortised encoder (the codec's analysis and posterior) learns from: refined (the "
+                        "target loss at the refined latents, passed straight through to the amortised ones) or "
+                        "amortised (the draws with K = 0 alone; the refined latents enter the decoder as constants)",
     "codec_init": "not used by this stage",
     "codec_latent_channels": "not used by this stage",
     "codec_finest_stride": "not used by this stage",
@@ -138,7 +148,8 @@ def semi_amortised_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBat
     refined, inner = refine_scenes(bare, batch, lam, out["latents"], config, step)
     if inner["inner_steps"] > 0:
         amortised_gaussians = out["gaussians"]
-        out = {**out, **decode_refined(bare, cameras, lam, out, refined)}
+        out = {**out, **decode_refined(bare, cameras, lam, out, refined,
+                                       through_encoder=config.encoder_gradient == "refined")}
         with torch.no_grad():
             inner["target_psnr_amortised"] = psnr(stage1.render_targets(bare, amortised_gaussians, batch),
                                                   batch.target_images).mean()
@@ -184,12 +195,17 @@ def refine_scenes(model: CodecSplat, batch: TrainingBatch, lam: float, latents: 
     return [torch.cat(level) for level in zip(*refined)], metrics
 
 
-def decode_refined(model: CodecSplat, cameras, lam: float, out: dict, refined: list[torch.Tensor]) -> dict:
+def decode_refined(model: CodecSplat, cameras, lam: float, out: dict, refined: list[torch.Tensor],
+                   through_encoder: bool = True) -> dict:
     """The codec path's outputs from the refined latents, first-order: they enter the decoder as ``z +
-    stop_gradient(refined - z)`` with ``z`` the amortised ``out["latents"]``; returns ``F_hat``, ``S``,
-    ``D_hat``, ``rate_bits`` and ``gaussians`` to replace ``out``'s."""
-    straight = [z + (r.to(z.dtype) - z).detach() for z, r in zip(out["latents"], refined)]
-    return decode_latents(model, cameras, lam, out["neighbours"], straight)
+    stop_gradient(refined - z)`` with ``z`` the amortised ``out["latents"]``, or, with ``through_encoder``
+    False, as ``refined + 0 * z`` (no gradient reaches the encoder, which stays in the graph so that DDP finds its
+    parameters used); returns ``F_hat``, ``S``, ``D_hat``, ``rate_bits`` and ``gaussians`` to replace ``out``'s."""
+    if through_encoder:
+        entering = [z + (r.to(z.dtype) - z).detach() for z, r in zip(out["latents"], refined)]
+    else:
+        entering = [r.to(z.dtype) + 0.0 * z for z, r in zip(out["latents"], refined)]
+    return decode_latents(model, cameras, lam, out["neighbours"], entering)
 
 
 def decode_latents(model: CodecSplat, cameras, lam: float, neighbours: torch.Tensor,
@@ -286,6 +302,9 @@ def parse_args(argv: list[str] | None = None) -> SemiAmortisedConfig:
         raise InputError(f"--inner-precision must be float32 or bfloat16, got {config.inner_precision!r}")
     if config.coded_every < 1:
         raise InputError("--coded-every must be >= 1")
+    if config.encoder_gradient not in ENCODER_GRADIENTS:
+        raise InputError(f"--encoder-gradient must be one of {', '.join(ENCODER_GRADIENTS)}, got "
+                         f"{config.encoder_gradient!r}")
     return config
 
 
