@@ -99,24 +99,33 @@ def test_refine_latents_lowers_the_context_loss_and_leaves_the_parameters_withou
     assert unchanged.first is None and all(torch.equal(a, b) for a, b in zip(unchanged.latents, latents))
 
 
+def _training_model(tmp_path):
+    """The tiny model with the default trained modules, in training mode, LPIPS and one 2-view batch."""
+    _model_file(tmp_path / "m.safetensors")
+    model = build_model(TINY, SemiAmortisedConfig(init=str(tmp_path / "m.safetensors"), out=str(tmp_path / "run")))
+    return model.train(), LPIPS(weights_dir=WEIGHTS), _batch()
+
+
+def _loss_and_gradients(model, lpips, batch, config: SemiAmortisedConfig) -> tuple[float, dict, dict]:
+    """One step's loss (seeded alike for every call), its metrics, and the gradient of every parameter it reached."""
+    torch.manual_seed(0)
+    model.zero_grad(set_to_none=True)
+    loss, metrics = semi_amortised_loss(model, lpips, batch, config, step=4)
+    loss.backward()
+    gradients = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+    return float(loss.detach()), metrics, gradients
+
+
 @needs_lpips
 def test_the_loss_decodes_the_refined_latents_and_its_gradient_reaches_decoder_and_encoder(tmp_path):
     """With K inner steps the loss is taken on the decode of the refined latents (another value than K = 0's
     with the same noise), the gradient reaches the decoder and, first-order, the codec's analysis and
     posterior, and the inner loop's metrics are there. Would catch: a loss on the amortised decode, or a
     straight-through that cuts the encoder off."""
-    _model_file(tmp_path / "m.safetensors")
-    config = SemiAmortisedConfig(init=str(tmp_path / "m.safetensors"), out=str(tmp_path / "run"))
-    model = build_model(TINY, config).train()
-    lpips = LPIPS(weights_dir=WEIGHTS)
-    batch = _batch()
+    model, lpips, batch = _training_model(tmp_path)
     losses = {}
     for steps in ("0", "4"):
-        torch.manual_seed(0)
-        model.zero_grad(set_to_none=True)
-        loss, metrics = semi_amortised_loss(model, lpips, batch, SemiAmortisedConfig(inner_steps=steps), step=4)
-        loss.backward()
-        losses[steps] = float(loss.detach())
+        losses[steps], metrics, _ = _loss_and_gradients(model, lpips, batch, SemiAmortisedConfig(inner_steps=steps))
         assert set(INNER_LOGGED) <= set(metrics)
         for part in ("codec.analysis", "codec.top_down", "codec.synthesis", "depth_head", "refine_post"):
             reached = [p.grad for n, p in model.named_parameters() if n.startswith(part) and p.grad is not None]
@@ -131,21 +140,10 @@ def test_with_the_encoder_gradient_amortised_only_the_decoder_learns_from_refine
     decoder's gradient is the same, and the encoder (the codec's analysis) gets exactly zero, while every trained
     parameter stays in the graph (DDP). Would catch: an encoder still pushed towards the refined latents, or a
     loss of another decode."""
-    _model_file(tmp_path / "m.safetensors")
-    model = build_model(TINY, SemiAmortisedConfig(init=str(tmp_path / "m.safetensors"), out=str(tmp_path / "run")))
-    model.train()
-    lpips = LPIPS(weights_dir=WEIGHTS)
-    batch = _batch()
-    runs = {}
-    for mode in ("refined", "amortised"):
-        torch.manual_seed(0)
-        model.zero_grad(set_to_none=True)
-        loss, _ = semi_amortised_loss(model, lpips, batch, SemiAmortisedConfig(inner_steps="3", encoder_gradient=mode),
-                                      step=4)
-        loss.backward()
-        runs[mode] = (float(loss.detach()), {n: p.grad.clone() for n, p in model.named_parameters()
-                                             if p.requires_grad and p.grad is not None})
-    (refined_loss, refined), (amortised_loss, amortised) = runs["refined"], runs["amortised"]
+    model, lpips, batch = _training_model(tmp_path)
+    runs = {mode: _loss_and_gradients(model, lpips, batch, SemiAmortisedConfig(inner_steps="3", encoder_gradient=mode))
+            for mode in ("refined", "amortised")}
+    (refined_loss, _, refined), (amortised_loss, _, amortised) = runs["refined"], runs["amortised"]
     assert amortised_loss == pytest.approx(refined_loss, rel=1e-6)
     assert set(amortised) == {n for n, p in model.named_parameters() if p.requires_grad}
     analysis = [n for n in amortised if n.startswith("codec.analysis")]
