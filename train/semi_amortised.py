@@ -196,7 +196,7 @@ def refine_scenes(model: CodecSplat, batch: TrainingBatch, lam: float, latents: 
 
 
 def decode_refined(model: CodecSplat, cameras, lam: float, out: dict, refined: list[torch.Tensor],
-                   through_encoder: bool = True) -> dict:
+                   through_encoder: bool) -> dict:
     """The codec path's outputs from the refined latents, first-order: they enter the decoder as ``z +
     stop_gradient(refined - z)`` with ``z`` the amortised ``out["latents"]``, or, with ``through_encoder``
     False, as ``refined + 0 * z`` (no gradient reaches the encoder, which stays in the graph so that DDP finds its
@@ -260,10 +260,9 @@ def trained_module(model: CodecSplat, name: str) -> torch.nn.Module | None:
     if not name:
         return None
     try:
-        module = model.get_submodule(name)
+        return model.get_submodule(name)  # AttributeError for a missing name or one that is not a module
     except AttributeError:
         return None
-    return module if isinstance(module, torch.nn.Module) else None
 
 
 def run_model_config(config: SemiAmortisedConfig) -> ModelConfig:
