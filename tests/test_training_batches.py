@@ -19,7 +19,7 @@ from codecsplat_warp.ops.geometry import nearest_views
 from train.checkpoint import load_matching_weights, read_weights
 from train.data import (Augmentation, DataSpec, TrainingBatch, batch_shape, make_source, photometric_jitter,
                         random_resized_crop)
-from train.heldout import HELD_OUT, INDEX_FILES
+from train.heldout import HELD_OUT, INDEX_FILES, SEEN, SEEN_INDEX_FILES
 
 TINY = get_preset("tiny")
 
@@ -160,6 +160,14 @@ def test_held_out_index_files_name_the_held_out_scenes():
     for protocol, views in (("re10k", 2), ("dl3dv", 8)):
         entries = json.loads(INDEX_FILES[protocol].read_text())
         assert tuple(entries) == HELD_OUT
+        assert all(len(e["context"]) == views and len(e["target"]) == 3 for e in entries.values())
+
+
+def test_the_seen_scenes_are_training_scenes_with_index_files():
+    assert not set(SEEN) & set(HELD_OUT) and len(SEEN) == len(HELD_OUT)
+    for protocol, views in (("re10k", 2), ("dl3dv", 8)):
+        entries = json.loads(SEEN_INDEX_FILES[protocol].read_text())
+        assert tuple(entries) == SEEN
         assert all(len(e["context"]) == views and len(e["target"]) == 3 for e in entries.values())
 
 
