@@ -4,6 +4,7 @@ gradients into the decoder, the inner loop's metrics, resumption; on the tiny pr
 from __future__ import annotations
 
 import json
+import warnings
 
 import pytest
 import torch
@@ -15,10 +16,10 @@ from codecsplat_warp.metrics import LPIPS
 from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.model.pretrained import save_pretrained
 from codecsplat_warp.model.rdo import rdo_config, refine_latents, rdo_loss, latent_target
-from codecsplat_warp.nn.config import FEATURE_STRIDE, get_preset
+from codecsplat_warp.nn.config import get_preset
 from train.checkpoint import latest_checkpoint, load_model_weights
 from train.data import DataSpec, make_source
-from train.semi_amortised import (INNER_LOGGED, SemiAmortisedConfig, build_model, draw_count, parse_args,
+from train.semi_amortised import (INNER_LOGGED, SemiAmortisedConfig, build_model, draw_count, inner_count, parse_args,
                                   run_model_config, semi_amortised_loss, train)
 from train.stage1 import METRICS_FILE
 
@@ -69,9 +70,23 @@ def test_inner_step_counts_are_drawn_reproducibly_from_the_list_and_bad_options_
     assert drawn != [draw_count(counts, 2, s, 0, 0) for s in range(60)]
     for argv, match in ((["--inner-steps", "3,-1"], "inner-steps"), (["--inner-steps", "a"], "inner-steps"),
                         (["--inner-preset", "fast"], "inner-preset"), (["--inner-precision", "fp8"], "precision"),
-                        (["--encoder-gradient", "both"], "encoder-gradient")):
+                        (["--encoder-gradient", "both"], "encoder-gradient"), (["--inner-draw", "rank"], "inner-draw"),
+                        (["--inner-cuda-graphs", "2"], "inner-cuda-graphs")):
         with pytest.raises(InputError, match=match):
             parse_args(argv)
+
+
+def test_inner_draw_step_gives_every_rank_and_scene_of_a_step_one_count():
+    """Would catch: ranks that wait on one another's longer inner loops under --inner-draw step, or scenes that all
+    share one count under the default."""
+    counts = [0, 4, 9, 25, 80]
+    per_scene, per_step = SemiAmortisedConfig(seed=3), SemiAmortisedConfig(seed=3, inner_draw="step")
+    assert parse_args(["--inner-draw", "step"]).inner_draw == "step" and per_scene.inner_draw == "scene"
+    for step in range(20):
+        shared = {inner_count(counts, per_step, step, rank, scene) for rank in range(4) for scene in range(2)}
+        assert shared == {draw_count(counts, 3, step, 0, 0)}
+    differing = [len({inner_count(counts, per_scene, step, rank, 0) for rank in range(4)}) for step in range(20)]
+    assert max(differing) > 1
 
 
 def test_refine_latents_lowers_the_context_loss_and_leaves_the_parameters_without_gradient(tmp_path):
@@ -97,6 +112,41 @@ def test_refine_latents_lowers_the_context_loss_and_leaves_the_parameters_withou
     assert float(result.last["mse"]) < float(result.first["mse"])
     unchanged = refine_latents(model, images, cameras, 1024.0, latents, rdo_config("medium", steps=0, views=2))
     assert unchanged.first is None and all(torch.equal(a, b) for a, b in zip(unchanged.latents, latents))
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA GPU visible to torch")
+def test_on_cuda_the_inner_loop_replays_the_graphed_decoder_while_the_weights_are_trainable(tmp_path, monkeypatch):
+    """Training's inner loop on CUDA takes the presets' CUDA graphs although the model's parameters require
+    gradients. Would catch: a capture that fails there and falls back to eager (a warning), graphs that write into
+    the weights' gradients, or graphed steps that move the latents elsewhere than the eager steps."""
+    from codecsplat_warp.model.rdo import loop
+
+    model = _model_file(tmp_path / "m.safetensors").cuda().train()
+    batch = _batch()
+    images = batch.context_images.cuda()
+    cameras = batch.context_cameras.to(device="cuda", dtype=torch.float32)
+    with torch.no_grad():
+        latents = model(images, cameras, lam=1024.0)["latents"]
+    decoders = []
+    capture = loop.step_decoder
+    monkeypatch.setattr(loop, "step_decoder", lambda *args: decoders.append(capture(*args)) or decoders[-1])
+
+    def refined(graphs: bool) -> list[torch.Tensor]:
+        config = rdo_config("medium", steps=20, views=2, cuda_graphs=graphs, check_every=0)
+        generator = torch.Generator(device="cuda").manual_seed(0)
+        return refine_latents(model, images, cameras, 1024.0, latents, config, generator).latents
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message="RDO runs without CUDA graphs")
+        graphed = refined(True)
+    assert decoders[0] is not None and all(p.grad is None for p in model.parameters())
+    assert all(p.requires_grad for p in model.parameters())
+    eager = refined(False)
+    assert decoders[1] is None
+    moved = sum(float((e - z).abs().mean()) for e, z in zip(eager, latents))
+    apart = sum(float((g - e).abs().mean()) for g, e in zip(graphed, eager))
+    assert moved > 0 and apart < 0.05 * moved
 
 
 def _training_model(tmp_path):

@@ -9,8 +9,8 @@ test time): per step and scene,
 1. the amortised encoder and codec give the latents ``z`` (:meth:`CodecSplat.forward` with a lambda, as stage 2);
 2. ``K`` steps of the encoder's own optimisation run on the context views from ``z``
    (:func:`codecsplat_warp.model.rdo.refine_latents`: the presets' loss, learning-rate schedule and quantiser, the
-   preset ``--inner-preset`` with its step count set to ``K``), ``K`` drawn per step from ``--inner-steps`` so that
-   one model serves every preset, ``fast`` (``K = 0``) included;
+   preset ``--inner-preset`` with its step count set to ``K``), ``K`` drawn from ``--inner-steps`` (per scene, or per
+   step with ``--inner-draw step``) so that one model serves every preset, ``fast`` (``K = 0``) included;
 3. the decoder decodes the refined latents ``z_K`` and the stage-2 loss is taken on the *target* views
    (:func:`train.stage2.codec_loss`: render distortion, depth, feature and rate terms).
 
@@ -86,6 +86,8 @@ class SemiAmortisedConfig(stage2.Stage2Config):
     inner_steps: str = "0,8,16,25"
     inner_preset: str = "medium"
     inner_precision: str = "float32"
+    inner_cuda_graphs: int = 1
+    inner_draw: str = "scene"
     train_modules: str = DEFAULT_TRAIN_MODULES
     encoder_gradient: str = "refined"
 
@@ -93,14 +95,21 @@ class SemiAmortisedConfig(stage2.Stage2Config):
 ENCODER_GRADIENTS = ("refined", "amortised")
 """``--encoder-gradient``'s choices (see the module docstring)."""
 
+INNER_DRAWS = ("scene", "step")
+"""``--inner-draw``'s choices: one K per rank and scene, or one K per step shared by every rank and scene."""
+
 OPTION_HELP = {
     **stage2.OPTION_HELP,
     "init": "the model to start from: a model file (default: the shipped model) or a run folder of this stage",
-    "inner_steps": "comma list of inner optimisation step counts K, one drawn per step and scene (0: the "
-                   "amortised latents, the fast preset); list one twice to draw it twice as often",
+    "inner_steps": "comma list of inner optimisation step counts K, one drawn per step and scene (see --inner-draw; "
+                   "0: the amortised latents, the fast preset); list one twice to draw it twice as often",
     "inner_preset": "the encoder preset whose optimisation runs inside each step (medium or slow; its loss, "
                     "learning rate and cross-view term, with K steps)",
     "inner_precision": "precision of the inner optimisation's networks: float32 (as the presets) or bfloat16",
+    "inner_cuda_graphs": "1: the inner optimisation replays its decoder and loss as CUDA graphs, as the presets do "
+                         "(on CUDA, for K >= 16; each loop pays a capture, so it gains on long loops only); 0: eager",
+    "inner_draw": "how K is drawn: scene (per rank and scene) or step (one K per step for every rank and scene, so "
+                  "that under DDP no rank waits on another's longer inner loop)",
     "train_modules": "comma list of the model's modules that train (codec, depth_head, refine_post, gs_head, "
                      "refine_pre, feat_head, mvenc), or a dotted path to a part of one: codec.synthesis is the "
                      "codec's decoder side, so that with the rest of the codec frozen the bytes stay the model's",
@@ -134,6 +143,13 @@ def draw_count(counts: list[int], seed: int, step: int, rank: int, scene: int) -
     scene of a step here; with ``rank`` and ``scene`` 0, one count per step that every rank draws alike."""
     generator = torch.Generator().manual_seed(((seed * 1_000_003 + step) * 1009 + rank) * 101 + scene + 7)
     return counts[int(torch.randint(len(counts), (), generator=generator))]
+
+
+def inner_count(counts: list[int], config: SemiAmortisedConfig, step: int, rank: int, scene: int) -> int:
+    """``K`` of one scene of a step (:func:`draw_count` from ``counts``): per rank and scene with ``--inner-draw
+    scene``, or one per step for every rank and scene with ``--inner-draw step``."""
+    per_scene = config.inner_draw == "scene"
+    return draw_count(counts, config.seed, step, rank if per_scene else 0, scene if per_scene else 0)
 
 
 def semi_amortised_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBatch, config: SemiAmortisedConfig,
@@ -173,9 +189,9 @@ def refine_scenes(model: CodecSplat, batch: TrainingBatch, lam: float, latents: 
     refined, drawn, gains, seconds = [], [], [], 0.0
     for scene, cameras in enumerate(batch.scene_contexts()):
         rows = slice(scene * views, (scene + 1) * views)
-        steps = draw_count(counts, config.seed, step, rank, scene)
+        steps = inner_count(counts, config, step, rank, scene)
         rdo = rdo_config(config.inner_preset, steps=steps, views=views, precision=config.inner_precision,
-                         cuda_graphs=False, check_every=0)
+                         cuda_graphs=bool(config.inner_cuda_graphs), check_every=0)
         generator = torch.Generator(device=device).manual_seed(config.seed * 1_000_003 + step * 101 + scene)
         synchronize(device)
         began = time.perf_counter()
@@ -299,6 +315,10 @@ def parse_args(argv: list[str] | None = None) -> SemiAmortisedConfig:
     check_inner_preset(config.inner_preset)
     if config.inner_precision not in ("float32", "bfloat16"):
         raise InputError(f"--inner-precision must be float32 or bfloat16, got {config.inner_precision!r}")
+    if config.inner_draw not in INNER_DRAWS:
+        raise InputError(f"--inner-draw must be one of {', '.join(INNER_DRAWS)}, got {config.inner_draw!r}")
+    if config.inner_cuda_graphs not in (0, 1):
+        raise InputError(f"--inner-cuda-graphs must be 0 or 1, got {config.inner_cuda_graphs}")
     if config.coded_every < 1:
         raise InputError("--coded-every must be >= 1")
     if config.encoder_gradient not in ENCODER_GRADIENTS:

@@ -226,20 +226,31 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
 
 @contextlib.contextmanager
 def decoder_fixed(model, device: torch.device) -> Iterator[None]:
-    """The model set up for an optimisation through it on ``device``: every parameter frozen (no weight gradients)
-    and, on the CPU, the decoder heads channels-last (:func:`heads_channels_last`); its parameters' gradient flags,
+    """The model set up for an optimisation through it on ``device``: every parameter frozen (no weight gradients,
+    :func:`parameters_frozen`) and, on the CPU, the decoder heads channels-last (:func:`heads_channels_last`); its
     weights and training mode given back when the block ends, however it ends."""
     was_training = model.training
-    frozen = [p.requires_grad for p in model.parameters()]
+    with parameters_frozen(model):
+        originals = heads_channels_last(model, device)
+        try:
+            yield
+        finally:
+            restore_weights(originals)
+            model.train(was_training)
+
+
+@contextlib.contextmanager
+def parameters_frozen(model) -> Iterator[None]:
+    """Every parameter of ``model`` without gradient inside the block (an optimisation of its inputs records no
+    weight-gradient paths, and its decoder can be captured as CUDA graphs, :func:`step_decoder`); each parameter's
+    flag given back when the block ends, however it ends."""
+    flags = [p.requires_grad for p in model.parameters()]
     model.requires_grad_(False)
-    originals = heads_channels_last(model, device)
     try:
         yield
     finally:
-        restore_weights(originals)
-        for p, flag in zip(model.parameters(), frozen):
+        for p, flag in zip(model.parameters(), flags):
             p.requires_grad_(flag)
-        model.train(was_training)
 
 
 CPU_CHANNELS_LAST = ("depth_head", "refine_post", "gs_head")
@@ -329,8 +340,10 @@ def refine_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, la
     """``config.steps`` steps of the encoder's optimisation (:func:`rdo_step`, the presets' loss, learning-rate
     schedule and quantiser) from ``latents`` (per level, on the gained grid), without real codings or checks:
     what semi-amortised training runs inside each of its steps (:mod:`train.semi_amortised`), on the model as it
-    is (its parameters may require gradients; none reaches them). ``config`` must have a step count and
-    ``variable="latents"``; ``images`` [V,3,H,W] float32 in [0,1], ``cameras`` the V context cameras."""
+    is (its parameters may require gradients; none reaches them: they are frozen while it runs). With
+    ``config.cuda_graphs`` on CUDA and at least :data:`~.graphs.GRAPH_MIN_STEPS` steps the decoder and the loss are
+    replayed as CUDA graphs, as in the presets. ``config`` must have a step count and ``variable="latents"``;
+    ``images`` [V,3,H,W] float32 in [0,1], ``cameras`` the V context cameras."""
     if config.steps is None or config.variable != "latents":
         raise InputError("refine_latents needs a step count and variable='latents'")
     variables = [z.detach().float().clone().requires_grad_(True) for z in latents]
@@ -340,11 +353,12 @@ def refine_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, la
     optimiser = latent_optimiser(variables, config)
     first_lr = optimiser.param_groups[0]["lr"]
     first = last = None
-    with validation(False):
+    with validation(False), parameters_frozen(model):
+        decoder = step_decoder(model.train(), target, variables, config)
         for step in range(config.steps):
             for group in optimiser.param_groups:
                 group["lr"] = _learning_rate(config, first_lr, step, 0.0)
-            last = rdo_step(model, variables, optimiser, target, config, generator,
+            last = rdo_step(model, variables, optimiser, target, config, generator, decoder,
                             temperature=annealing_temperature(config, step, 0.0))
             first = first or last
     return Refinement([v.detach() for v in variables], first, last)
