@@ -18,8 +18,8 @@ from codecsplat_warp.errors import DataError, InputError
 from codecsplat_warp.eval.evaluate import (EvalConfig, Evaluator, RDOSetting, check_config, evaluate, layout_rows,
                                            row_layout)
 from codecsplat_warp.eval.protocols import PROTOCOLS, find_scenes, index_samples
-from codecsplat_warp.eval.report import (BACKBONE, CODECSPLAT, COPY_NEAREST, plot_distortion_vs_time,
-                                         plot_rate_distortion, table1, table2)
+from codecsplat_warp.eval.report import (BACKBONE, CODECSPLAT, COPY_NEAREST, equal_bytes, plot_distortion_vs_time,
+                                         plot_rate_distortion, table1, table2, table4)
 from codecsplat_warp.export.video import to_uint8_frames
 from codecsplat_warp.metrics.image import ImageMetrics
 from codecsplat_warp.choices import RDO_CROSS_VIEW_MIN_STEPS, RDO_PRESETS
@@ -202,6 +202,7 @@ def test_eval_command_writes_the_new_rows_into_results_and_tables(scenes, model,
     assert saved["config"]["webp_qualities"] == [5, 50] and saved["config"]["rdo_steps"] == [1]
     assert [r["quality"] for r in saved["rows"]][-3:] == [20, 5, 50] and saved["rows"][2]["rdo"]["steps"] == 1
     markdown = (tmp_path / "out" / "tables.md").read_text()
+    assert "## Table 4: at equal bytes" in markdown and result["tables"]["table4"] == "-"  # one lambda: no curve
     for line in ("| JPEG + codec-free | q=20 |", "| WebP + codec-free | q=5,…,50 |",
                  "| CodecSplat RDO (1 step) | λ=64 |", "GS generation of the image codecs runs at the receiver",
                  "CodecSplat RDO (1 step): 1 step;"):
@@ -242,6 +243,36 @@ def test_tables_order_and_average_each_curve():
                       "| JPEG + codec-free | q=5,…,50 | 1.000 | 2.000 | 3.000 |",
                       "| CodecSplat | λ=16,…,1024 | 1.000 | 2.000 | 3.000 |",
                       "| CodecSplat RDO (slow) | λ=16,…,1024 | 1.000 | 50.000 | 3.000 |"]
+
+
+def test_equal_bytes_compares_each_codecsplat_curve_with_each_image_codec_over_their_shared_range():
+    """Would catch: curves compared at their own settings instead of equal bytes, a sign that calls a higher LPIPS
+    better, a range outside what both curves cover, or single settings taken for curves."""
+    entries = {(e["method"], e["baseline"]): e for e in equal_bytes(SUMMARY)}
+    assert set(entries) == {(m, b) for m in (CODECSPLAT, "CodecSplat RDO (slow)")
+                            for b in ("WebP + codec-free", "JPEG + codec-free")}
+    webp = entries[(CODECSPLAT, "WebP + codec-free")]
+    assert (webp["from_bytes"], webp["to_bytes"]) == (4000, 9000)
+
+    def at(points, size):  # linear in log bytes
+        (b0, v0), (b1, v1) = points
+        return v0 + (v1 - v0) * np.log(size / b0) / np.log(b1 / b0)
+
+    ends = [at([(2000, 19.0), (9000, 21.0)], b) - at([(4000, 17.0), (9500, 20.0)], b) for b in (4000, 9000)]
+    assert webp["psnr_least"] == pytest.approx(min(ends)) and webp["psnr_most"] == pytest.approx(max(ends))
+    assert webp["lpips_vgg_least"] is None  # not measured
+    lpips = [_entry(CODECSPLAT, "λ=16", 2000, 19.0, lam=16.0) | {"lpips_vgg": 0.40},
+             _entry(CODECSPLAT, "λ=1024", 8000, 20.0, lam=1024.0) | {"lpips_vgg": 0.36},
+             _entry("WebP + codec-free", "q=5", 2000, 18.0, quality=5) | {"lpips_vgg": 0.45},
+             _entry("WebP + codec-free", "q=50", 8000, 18.5, quality=50) | {"lpips_vgg": 0.30},
+             _entry("JPEG + codec-free", "q=5", 9000, 17.0, quality=5), _entry("JPEG + codec-free", "q=50", 20000,
+                                                                               18.0, quality=50)]
+    (crossing,) = equal_bytes(lpips)  # JPEG's sizes lie above CodecSplat's: nothing to compare
+    assert crossing["lpips_vgg_least"] == pytest.approx(-0.06) and crossing["lpips_vgg_most"] == pytest.approx(0.05)
+    assert crossing["psnr_least"] == pytest.approx(1.0) and crossing["psnr_most"] == pytest.approx(1.5)
+    assert "| CodecSplat | WebP + codec-free | 1.95 KiB to 7.81 KiB | +1.000 / +1.500 | -0.060 / +0.050 |" in \
+        table4(lpips)
+    assert table4(lpips[:3]) == "-"  # a single image-codec setting is no curve
 
 
 def test_plots_draw_a_line_per_curve_on_log_bytes_and_image_codecs_generate_at_the_receiver(tmp_path, monkeypatch):

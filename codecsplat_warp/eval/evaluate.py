@@ -80,7 +80,7 @@ from .protocols import (PROTOCOLS, Protocol, Sample, SamplePlan, chunk_plan, eag
                         is_chunk_folder, nearest_context_images, scene_samples, select_scenes)
 from .report import (BACKBONE, CODECSPLAT, COPY_NEAREST, Row, format_bytes, image_codec_method, markdown_report,
                      plot_comparison, plot_distortion_vs_time, plot_rate_distortion, rdo_method, steps_text,
-                     summarize, table1, table2, table3)
+                     summarize, table1, table2, table3, table4)
 
 SIDE_PARTS = ("header", "cameras")
 """Parts of a CodecSplat bitstream that the image-codec rows count too: the cameras both sides must send."""
@@ -462,7 +462,7 @@ def evaluate(model, config: EvalConfig, device: torch.device,
         {"config", "device", "machine", "model_id", "scenes", "skipped", "lpips", "files", "plan", "rdo" (each RDO
         setting's method, preset, steps and seed), "samples_done", "samples_total", "summary", "rows",
         "depth_reference" (folder, samples and context views scored, and a sentence saying so), "notes", "tables"
-        (table1, table2, table3)}.
+        (table1, table2, table3, table4: the curves at equal bytes)}.
     Raises:
         InputError: unknown protocol or baseline, empty lambda list, bad size, a chunk folder without an index
             or with the ``scene`` protocol; an image baseline without qualities, a bad or repeated quality; an
@@ -604,7 +604,8 @@ def write_results(header: dict, rows: list[Row], mvs_depth: str | None, notes: l
     result = {**header, "samples_done": total, "samples_total": total, "summary": summary,
               "rows": [asdict(r) for r in rows], "depth_reference": _depth_reference(mvs_depth, rows, header["plan"]),
               "notes": notes,
-              "tables": {"table1": table1(summary), "table2": table2(summary), "table3": table3(summary)}}
+              "tables": {"table1": table1(summary), "table2": table2(summary), "table3": table3(summary),
+                         "table4": table4(summary)}}
     files = {role: pathlib.Path(path) for role, path in header["files"].items()}
     write_json(files["json"], result)
     write_text(files["markdown"], markdown_report(result))

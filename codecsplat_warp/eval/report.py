@@ -11,6 +11,8 @@ import textwrap
 from dataclasses import dataclass, field
 from typing import Callable
 
+import numpy as np
+
 from ..export.files import atomic_output
 from ..measure import format_table
 
@@ -190,6 +192,72 @@ def table2(summary: list[dict]) -> str:
         mean = {k: statistics.fmean(s[k] for s in group) for k in ("gen_s", "compress_s", "decompress_s")}
         rows.append({"method": group[0]["method"], "setting": _span(group), **mean})
     return format_table(rows, TABLE2_COLUMNS)
+
+
+EQUAL_BYTES_METRICS = (("psnr", "PSNR gain, dB", 1.0), ("lpips_vgg", "LPIPS-VGG lead", -1.0))
+"""The metrics :func:`equal_bytes` compares: key, Table 4's header, and the sign that makes a positive difference
+mean CodecSplat is better (PSNR higher, LPIPS lower)."""
+
+EQUAL_BYTES_POINTS = 64
+"""Sizes at which :func:`equal_bytes` compares two curves, evenly spread in log bytes over the range they share."""
+
+
+def equal_bytes(summary: list[dict]) -> list[dict]:
+    """Each CodecSplat curve (a method with lambdas) against each image-codec curve (a method with qualities), at
+    equal bytes: both interpolated linearly in log bytes at :data:`EQUAL_BYTES_POINTS` sizes over the range of
+    bytes they share. For each metric of :data:`EQUAL_BYTES_METRICS` the least and the most difference, CodecSplat
+    against the baseline, signed so that positive means CodecSplat is better: it is better at every size of the
+    range where the least is positive. A pair where a curve has fewer than two entries or the two share no range
+    gives no entry; a metric that either lacks (LPIPS without weights) gives None.
+
+    Returns:
+        dicts with ``method``, ``baseline``, ``from_bytes`` and ``to_bytes`` (the shared range), and per metric
+        ``<key>_least`` and ``<key>_most`` (the metric's units).
+    """
+    curves = [group for group in _by_method(summary) if len(group) >= 2 and _curve(group[0])]
+    ours = [group for group in curves if _curve(group[0])[0] == "λ"]
+    theirs = [group for group in curves if _curve(group[0])[0] == "q"]
+    entries = []
+    for mine, baseline in itertools.product(ours, theirs):
+        low = max(min(e["bytes"] for e in mine), min(e["bytes"] for e in baseline))
+        high = min(max(e["bytes"] for e in mine), max(e["bytes"] for e in baseline))
+        if not 0 < low < high:
+            continue
+        sizes = np.geomspace(low, high, EQUAL_BYTES_POINTS)
+        entry = {"method": mine[0]["method"], "baseline": baseline[0]["method"], "from_bytes": low, "to_bytes": high}
+        for key, _, sign in EQUAL_BYTES_METRICS:
+            difference = None
+            if all(e.get(key) is not None for e in (*mine, *baseline)):
+                difference = sign * (_at_bytes(mine, key, sizes) - _at_bytes(baseline, key, sizes))
+            entry[f"{key}_least"] = None if difference is None else float(difference.min())
+            entry[f"{key}_most"] = None if difference is None else float(difference.max())
+        entries.append(entry)
+    return entries
+
+
+def _at_bytes(curve: list[dict], key: str, sizes: np.ndarray) -> np.ndarray:
+    """``curve``'s ``key`` at ``sizes`` bytes, linear in log bytes between its entries (sorted by bytes)."""
+    ordered = sorted(curve, key=lambda e: e["bytes"])
+    return np.interp(np.log(sizes), [np.log(e["bytes"]) for e in ordered], [e[key] for e in ordered])
+
+
+def table4(summary: list[dict]) -> str:
+    """Table 4: :func:`equal_bytes` as Markdown, the least and the most difference per metric ("-": no curves to
+    compare; n/a: the metric was not measured)."""
+    entries = equal_bytes(summary)
+    if not entries:
+        return "-"
+    rows = []
+    for entry in entries:
+        row = {"method": entry["method"], "baseline": entry["baseline"],
+               "range": f"{format_bytes(entry['from_bytes'])} to {format_bytes(entry['to_bytes'])}"}
+        for key, _, _ in EQUAL_BYTES_METRICS:
+            least, most = entry[f"{key}_least"], entry[f"{key}_most"]
+            row[key] = None if least is None else f"{least:+.3f} / {most:+.3f}"
+        rows.append(row)
+    columns = [("method", "Method", "s"), ("baseline", "against", "s"), ("range", "at equal bytes over", "s"),
+               *((key, f"{header} (least / most)", "s") for key, header, _ in EQUAL_BYTES_METRICS)]
+    return format_table(rows, columns)
 
 
 def _curve(entry: dict) -> tuple[str, float] | None:
@@ -379,6 +447,15 @@ def markdown_report(result: dict) -> str:
         "mean over samples. " + result["depth_reference"]["text"],
         "",
         result["tables"]["table3"],
+        "",
+        "## Table 4: at equal bytes",
+        "",
+        "Each CodecSplat curve against each image codec's, both interpolated linearly in log bytes over the range of "
+        "sizes they share: the least and the most difference there, positive where CodecSplat is better (PSNR "
+        "gain in dB; LPIPS-VGG lead, the baseline's minus CodecSplat's). A least above 0 means better at every "
+        "size of the range.",
+        "",
+        result["tables"].get("table4", "-"),
         "",
     ]
     if result["skipped"]:
