@@ -455,7 +455,7 @@ def markdown_report(result: dict) -> str:
         "gain in dB; LPIPS-VGG lead, the baseline's minus CodecSplat's). A least above 0 means better at every "
         "size of the range.",
         "",
-        result["tables"].get("table4", "-"),
+        result["tables"]["table4"],
         "",
     ]
     if result["skipped"]:
