@@ -15,7 +15,8 @@ The decoder side uses only the bitstream: its cameras, lambda and latents; never
 
 The *model identifier* (:func:`model_id`, 16 hex digits) names the decoder a bitstream needs: a hash of the
 config, the float32 weights and the entropy coder's probability tables. Every bitstream carries it in its
-header, and decoding with another model raises BitstreamError naming both.
+header, and decoding with another model raises BitstreamError naming both and where to get the one it needs
+(:func:`~codecsplat_warp.model.releases.where_to_get`).
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ from .culling import render_depth_range
 from .mvenc import MonoBackbone, MVEnc, context_neighbours
 from .rdo import optimise_latents, rdo_config
 from .refine import Refiner
+from .releases import where_to_get
 
 DECODE_PRECISIONS = ("float32", "bfloat16")
 """Precisions :meth:`CodecSplat.decode_scene` runs its network part in; float32 is the default."""
@@ -240,7 +242,8 @@ class CodecSplat(nn.Module):
                 for speed on a GPU: its Gaussians differ from the float32 decode's, means by up to ~0.3 world
                 units on real scenes, so another device's decode no longer matches it).
         Raises:
-            BitstreamError: truncated, corrupt, foreign (another model's), or newer-version input.
+            BitstreamError: truncated, corrupt, foreign (another model's: the message says where that model is), or
+                newer-version input.
             DeviceMismatchError: ``device`` is not the model's device.
             InputError: an unknown ``precision``.
         """
@@ -256,7 +259,7 @@ class CodecSplat(nn.Module):
             expected = model_id(self)
             if parsed.header.model_id != expected:
                 raise BitstreamError(f"the bitstream was written by model {parsed.header.model_id}, but this model is "
-                                     f"{expected}: decode it with the model that encoded it")
+                                     f"{expected}; {where_to_get(parsed.header.model_id)}")
         cameras = parsed.cameras.to(param.device, param.dtype)
         grid_h, grid_w = cameras.height // FEATURE_STRIDE, cameras.width // FEATURE_STRIDE
         full_float32 = _without_tf32() if precision == "float32" else contextlib.nullcontext()
