@@ -12,8 +12,9 @@ import pytest
 import torch
 
 from codecsplat_warp.bench.options import RDO_PROFILE_PARTS
+import codecsplat_warp.bench.rdo as bench_rdo
 from codecsplat_warp.bench.rdo import parse_settings
-from codecsplat_warp.errors import InputError
+from codecsplat_warp.errors import DataError, InputError
 from codecsplat_warp.metrics.lpips import WEIGHTS_ENV
 from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.model.pretrained import save_pretrained
@@ -102,3 +103,31 @@ def test_workers_give_the_rows_of_one_process(workspace):
     assert two["wall_s"] >= max(w["start_s"] + w["load_s"] + w["work_s"] for w in timing) - 1e-3
     for a, b in zip(one["rows"], two["rows"]):
         assert a.get("bytes") == b.get("bytes") and a["psnr"] == pytest.approx(b["psnr"], abs=1e-4)
+
+
+def _coded(method, lam, steps, seconds, psnr):
+    return {"method": method, "lambda": lam, "steps": steps, "seconds": seconds, "psnr": psnr, "lpips_vgg": 0.5,
+            "bytes": 4096}
+
+
+def test_compare_draws_an_earlier_result_beside_this_runs_curves(tmp_path, monkeypatch):
+    """Would catch: a compared result drawn without its label or in this run's style, a reference row of it drawn
+    as a line of its own, or files that are not bench rdo results taken silently."""
+    figures = []
+    monkeypatch.setattr(bench_rdo, "save_figure", lambda fig, path: figures.append(fig))
+    now = [_coded("codecsplat", 1024.0, k, 0.1 + k / 100, 17 + k / 100) for k in (0, 25)]
+    earlier = [{"method": "codec-free", "psnr": 16.9}, *(_coded("codecsplat", 1024.0, k, 0.1 + k / 50, 16.5 + k / 200)
+                                                         for k in (0, 25))]
+    (tmp_path / "shipped.json").write_text(json.dumps({"summary": earlier}))
+    compared = bench_rdo._compared_results(str(tmp_path / "shipped.json"), "curve.png")
+    bench_rdo.plot_curve(now, tmp_path / "curve.png", compared)
+    lines = {line.get_label(): line for line in figures[0].axes[0].get_lines()}
+    assert set(lines) == {"λ=1024", "shipped: λ=1024"}
+    assert lines["λ=1024"].get_linestyle() == "-" and lines["shipped: λ=1024"].get_linestyle() == ":"
+    assert list(lines["shipped: λ=1024"].get_ydata()) == [16.5, 16.625]
+    with pytest.raises(InputError, match="--plot"):
+        bench_rdo._compared_results(str(tmp_path / "shipped.json"), None)
+    (tmp_path / "other.json").write_text(json.dumps({"rows": []}))
+    for bad in ("other.json", "missing.json"):
+        with pytest.raises(DataError, match=f"--compare .*{bad}"):
+            bench_rdo._compared_results(str(tmp_path / bad), "curve.png")

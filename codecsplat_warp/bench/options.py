@@ -174,6 +174,9 @@ def rdo_arguments(parser: argparse.ArgumentParser) -> None:
                         "$CODECSPLAT_LPIPS_WEIGHTS)")
     parser.add_argument("--plot", default=None, metavar="PNG", help="write the error-against-time plot here "
                         "(default: none)")
+    parser.add_argument("--compare", default="", metavar="JSON[,JSON...]", help="with --plot: earlier bench rdo "
+                        "results (their --out files, e.g. another model's) drawn beside this run's curves, dotted, "
+                        "each labelled by its file name (default: none)")
     parser.add_argument("--pictures", default=None, metavar="DIR", help="write each sample's targets by every step "
                         "count to DIR/<scene>-lambda<L>.png (default: none)")
     parser.add_argument("--trajectory", action="store_true", help="also score the targets at every check of each "

@@ -30,6 +30,7 @@ its ratio to the Adam step's.
 from __future__ import annotations
 
 import argparse
+import json
 import pathlib
 import statistics
 import sys
@@ -37,7 +38,7 @@ import time
 
 import torch
 
-from ..errors import InputError
+from ..errors import DataError, InputError
 from ..eval.protocols import (PROTOCOLS, Sample, eager_plan, find_scenes, folder_index_plan, nearest_context_images,
                               scene_samples, select_scenes)
 from ..eval.report import plot_comparison, pyplot, save_figure
@@ -67,6 +68,7 @@ def run(args: argparse.Namespace) -> dict:
     refiner_steps = _int_list(args.refiner_steps, "--refiner-steps") if args.refiner else []
     if not lambdas or not steps or any(n < 0 for n in steps + refiner_steps):
         raise InputError("--lambdas and --steps need at least one value each, steps >= 0")
+    compared = _compared_results(args.compare, args.plot)  # unreadable files fail before any work
     if args.refiner and not refiner_steps and not args.profile:
         raise InputError("--refiner needs --refiner-steps (its iteration counts, each its own run)")
     workers = [device] if args.profile else shard_devices(args.device, args.workers)
@@ -101,8 +103,27 @@ def run(args: argparse.Namespace) -> dict:
         print(format_summary(result["summary"], result["machine"]))
         print(format_worker_seconds(result["wall_s"], result["worker_seconds"], "sample-lambda pairs"))
     if args.plot:
-        plot_curve(result["summary"], pathlib.Path(args.plot))
+        plot_curve(result["summary"], pathlib.Path(args.plot), compared)
     return result
+
+
+def _compared_results(text: str, plot: str | None) -> list[tuple[str, list[dict]]]:
+    """``--compare``'s files as (label: the file name without ``.json``, summary) pairs. Raises InputError without
+    ``--plot``, and DataError for a file that is missing or not a bench rdo result."""
+    paths = [pathlib.Path(part.strip()) for part in text.split(",") if part.strip()]
+    if paths and not plot:
+        raise InputError("--compare draws earlier results beside this run's on --plot: give --plot PNG too")
+    compared = []
+    for path in paths:
+        try:
+            summary = json.loads(path.read_text()).get("summary")
+        except (OSError, ValueError, AttributeError) as error:
+            raise DataError(f"--compare {path}: cannot read it as a bench rdo result (its --out JSON): {error}") \
+                from None
+        if not isinstance(summary, list) or not all(isinstance(e, dict) and "method" in e for e in summary):
+            raise DataError(f"--compare {path}: not a bench rdo result (its --out JSON has no summary of rows)")
+        compared.append((path.name.removesuffix(".json"), summary))
+    return compared
 
 
 def _worker_part(samples: list[Sample], units: list[tuple[int, int]]) -> list[tuple[Sample, list[int]]]:
@@ -322,23 +343,14 @@ def format_summary(summary: list[dict], machine: str) -> str:
     return f"bench rdo on {machine}: means over samples\n" + format_table(rows, columns)
 
 
-def plot_curve(summary: list[dict], path: pathlib.Path) -> None:
+def plot_curve(summary: list[dict], path: pathlib.Path, compared: list[tuple[str, list[dict]]] = ()) -> None:
     """Target PSNR, LPIPS-VGG and KiB against mean encode seconds, one line per method of coding (Adam's steps,
-    a refiner's iterations) and lambda (points: step counts), with the references as horizontal lines."""
+    a refiner's iterations) and lambda (points: step counts), with the references as horizontal lines; each of
+    ``compared`` (label, an earlier result's summary) adds its coded lines, dotted and labelled with it."""
     plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
-    coded = [e for e in summary if e["method"] in CODED_METHODS]
-    for method, lam in sorted({(e["method"], e["lambda"]) for e in coded}):
-        line = sorted((e for e in coded if (e["method"], e["lambda"]) == (method, lam)), key=lambda e: e["seconds"])
-        seconds = [e["seconds"] for e in line]
-        label = f"λ={lam:g}" if method == "codecsplat" else f"{method} λ={lam:g}"
-        for ax, key, scale in zip(axes, ("psnr", "lpips_vgg", "bytes"), (1, 1, 1 / 1024)):
-            if all(key in e for e in line):
-                ax.plot(seconds, [e[key] * scale for e in line], "o-" if method == "codecsplat" else "s--",
-                        label=label)
-                for e, x in zip(line, seconds):
-                    ax.annotate(str(e["steps"]), (x, e[key] * scale), fontsize=7, xytext=(2, 2),
-                                textcoords="offset points")
+    for prefix, entries, style in [("", summary, None), *((f"{label}: ", entries, ":") for label, entries in compared)]:
+        _plot_coded_lines(axes, [e for e in entries if e["method"] in CODED_METHODS], prefix, style)
     for entry, style in zip((e for e in summary if e["method"] not in CODED_METHODS), ("k:", "k--")):
         for ax, key in zip(axes[:2], ("psnr", "lpips_vgg")):
             if key in entry:
@@ -349,6 +361,24 @@ def plot_curve(summary: list[dict], path: pathlib.Path) -> None:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     save_figure(fig, path)
+
+
+def _plot_coded_lines(axes, coded: list[dict], prefix: str, style: str | None) -> None:
+    """:func:`plot_curve`'s lines of the ``coded`` entries of one result on its three ``axes``: one per method
+    and lambda, labelled with ``prefix``, in the line ``style`` (None: solid for Adam's steps, dashed for a
+    refiner), each point annotated with its step count."""
+    for method, lam in sorted({(e["method"], e["lambda"]) for e in coded}):
+        line = sorted((e for e in coded if (e["method"], e["lambda"]) == (method, lam)), key=lambda e: e["seconds"])
+        seconds = [e["seconds"] for e in line]
+        label = prefix + (f"λ={lam:g}" if method == "codecsplat" else f"{method} λ={lam:g}")
+        marker = "o" if method == "codecsplat" else "s"
+        for ax, key, scale in zip(axes, ("psnr", "lpips_vgg", "bytes"), (1, 1, 1 / 1024)):
+            if all(key in e for e in line):
+                ax.plot(seconds, [e[key] * scale for e in line],
+                        marker + (style or ("-" if method == "codecsplat" else "--")), label=label)
+                for e, x in zip(line, seconds):
+                    ax.annotate(str(e["steps"]), (x, e[key] * scale), fontsize=7, xytext=(2, 2),
+                                textcoords="offset points")
 
 
 # --------------------------------------------------------------------------------------------------
