@@ -27,8 +27,9 @@ from ..device import resolve_device
 from ..errors import DataError, InputError
 from ..nn.config import ModelConfig
 from .codecsplat import CodecSplat, model_id, weights_digest
+from .releases import DEFAULT_FILE
 
-DEFAULT_CHECKPOINT = pathlib.Path(__file__).resolve().parents[1] / "assets" / "codecsplat-default.safetensors"
+DEFAULT_CHECKPOINT = pathlib.Path(__file__).resolve().parents[1] / DEFAULT_FILE
 """The checkpoint shipped with the package (``load_pretrained()`` with no path)."""
 
 FORMAT = "codecsplat-pretrained-v1"

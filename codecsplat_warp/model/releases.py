@@ -8,15 +8,16 @@ decodable with that model's file, and :func:`where_to_get` tells a user who hold
 from __future__ import annotations
 
 DEFAULT_MODEL_ID = "554cc15fd43d1f3e"
-"""The identifier of the model shipped with this package (``codecsplat_warp/assets/codecsplat-default.safetensors``;
-a test checks that the file holds it)."""
+"""The identifier of the model shipped with this package (the file :data:`DEFAULT_FILE`; a test checks that it
+holds this model)."""
 
 EARLIER_DEFAULTS: dict[str, str] = {}
 """Models that were the shipped default of an earlier release and are no longer: identifier -> the last
 ``codecsplat-warp`` version that shipped it (empty while the first default ships)."""
 
-DEFAULT_FILE = "codecsplat_warp/assets/codecsplat-default.safetensors"
-"""Where a release keeps its default model, inside the package."""
+DEFAULT_FILE = "assets/codecsplat-default.safetensors"
+"""Where a release keeps its default model, relative to the package folder ``codecsplat_warp/``
+(:data:`~codecsplat_warp.model.pretrained.DEFAULT_CHECKPOINT` is this file)."""
 
 
 def where_to_get(model_id: str) -> str:
@@ -28,7 +29,7 @@ def where_to_get(model_id: str) -> str:
     if model_id in EARLIER_DEFAULTS:
         version = EARLIER_DEFAULTS[model_id]
         return (f"{model_id} was the default model of codecsplat-warp {version}: decode with that release (pip "
-                f"install codecsplat-warp=={version}), or pass its {DEFAULT_FILE} as --checkpoint (Python: "
+                f"install codecsplat-warp=={version}), or pass its codecsplat_warp/{DEFAULT_FILE} as --checkpoint (Python: "
                 "load_pretrained(path))")
     return (f"{model_id} is not a model this package shipped: decode with the model file that encoded it "
             "(--checkpoint FILE; Python: load_pretrained(FILE))")
