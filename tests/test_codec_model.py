@@ -144,6 +144,33 @@ def test_training_pass_gives_a_rate_and_gradients_to_every_codec_module():
             assert p.grad is not None and bool(torch.isfinite(p.grad).all()), name
 
 
+def test_held_rounding_offsets_make_the_decoder_input_linear_in_the_latents():
+    """The noisy quantiser's held offsets (finite differences along the latents, train.semi_amortised): at the
+    point they were recorded the pass is the plain one; a move of the finest level (on which no other level's mean
+    depends) by whole quantisation steps moves the feature as the plain rounding does there (its offsets are
+    periodic in its latents); half a step does not snap. Would catch:
+    offsets recorded or held per the wrong level, or held ones that still round."""
+    model = tiny_coding_model(0).train()
+    images, cameras = _scene()
+    with torch.no_grad():
+        latents = model(images, cameras, lam=100.0)["latents"]
+        h, w = cameras.height // 2, cameras.width // 2
+        run = lambda zs, held=None: model.codec.forward_latents(  # noqa: E731
+            zs, 100.0, h, w, torch.Generator().manual_seed(4), held_offsets=held)
+        plain = run(latents)
+        assert len(plain.rounding_offsets) == len(latents)
+        assert all(float(o.abs().max()) <= 0.5 for o in plain.rounding_offsets)
+        held = run(latents, plain.rounding_offsets)
+        torch.testing.assert_close(held.feature, plain.feature)
+        torch.testing.assert_close(held.bits, plain.bits)
+        finest = [*latents[:-1], latents[-1] + 1.0]
+        torch.testing.assert_close(run(finest, plain.rounding_offsets).feature, run(finest).feature)
+        halfway = [*latents[:-1], latents[-1] + 0.5]
+        assert not torch.allclose(run(halfway, plain.rounding_offsets).feature, run(halfway).feature)
+    with pytest.raises(InputError, match="training mode"):
+        model.eval().codec.forward_latents(latents, 100.0, h, w, held_offsets=plain.rounding_offsets)
+
+
 def test_pretrained_round_trip_and_missing_files(tmp_path, coded):
     model, _, _, encoded = coded
     path = save_pretrained(model, tmp_path / "m.safetensors")

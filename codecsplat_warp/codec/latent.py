@@ -338,20 +338,29 @@ class NoisyQuantizer:
             drawing them (a CUDA graph replays the pass with new samples in the same tensors).
         temperature: None, or the annealing temperature T > 0 (a 0-dim float32 tensor on the latents' device, so
             that a CUDA graph reads its current value).
+        held_offsets: per level, ``round(r) - r`` recorded by another pass (:attr:`rounding_offsets`) to add
+            instead of this pass's: the decoder input becomes ``z + offset``, linear in the latents, which is the
+            straight-through rounding's own linearisation (finite differences along the latents then measure
+            what its gradient says; :func:`train.semi_amortised.lookahead_term`). Not with a temperature.
 
     Attributes:
         bits: per level, the estimated bits of each view [V] (float32, differentiable).
         latents: per level, the posterior means it was given, on the gained grid (differentiable; what
             semi-amortised training refines, :mod:`train.semi_amortised`).
+        rounding_offsets: per level, the ``round(r) - r`` this pass added (detached; without a temperature).
     """
 
     def __init__(self, generator: torch.Generator | None = None, noise: list[torch.Tensor] | None = None,
-                 temperature: torch.Tensor | None = None):
+                 temperature: torch.Tensor | None = None, held_offsets: list[torch.Tensor] | None = None):
+        if temperature is not None and held_offsets is not None:
+            raise InputError("held rounding offsets apply to the noisy quantiser, not to annealed rounding")
         self.bits: list[torch.Tensor] = []
         self.latents: list[torch.Tensor] = []
+        self.rounding_offsets: list[torch.Tensor] = []
         self.generator = generator
         self.noise = noise
         self.temperature = temperature
+        self.held_offsets = held_offsets
 
     def __call__(self, level: int, z, mean, log_scale):
         self.latents.append(z)
@@ -365,7 +374,9 @@ class NoisyQuantizer:
             quantized = annealed_rounding(residual, noise, self.temperature)
             self.bits.append(entropy.gaussian_bits(quantized, log_scale.float().exp()).sum(dim=(1, 2, 3)))
             return mean.float() + quantized
-        rounded = residual + (torch.round(residual) - residual).detach()
+        offset = (torch.round(residual) - residual).detach()
+        self.rounding_offsets.append(offset)
+        rounded = residual + (offset if self.held_offsets is None else self.held_offsets[level])
         noisy = residual + noise - 0.5
         self.bits.append(entropy.gaussian_bits(noisy, log_scale.float().exp()).sum(dim=(1, 2, 3)))
         return mean.float() + rounded
@@ -450,11 +461,14 @@ class CodecOutput:
         bits: [V] estimated bits of each view (Eq. 7; noisy in training, the discrete model's otherwise).
         latents: per level (coarsest first), the posterior means that were quantised, on the gained grid
             [V,C_l,h_l,w_l], differentiable in training mode.
+        rounding_offsets: per level, the noisy quantiser's ``round(r) - r`` of the residuals ``r`` (detached; the
+            latents' shapes); None from the coder's rounding (eval mode) and from annealed rounding.
     """
 
     feature: torch.Tensor
     bits: torch.Tensor
     latents: list[torch.Tensor]
+    rounding_offsets: list[torch.Tensor] | None = None
 
 
 @dataclass
@@ -568,21 +582,27 @@ class LatentCodec(nn.Module):
     def forward_latents(self, latents: list[torch.Tensor], lam: float, height: int, width: int,
                         generator: torch.Generator | None = None, noise: list[torch.Tensor] | None = None,
                         lambda_embedding: torch.Tensor | None = None,
-                        temperature: torch.Tensor | None = None) -> CodecOutput:
+                        temperature: torch.Tensor | None = None,
+                        held_offsets: list[torch.Tensor] | None = None) -> CodecOutput:
         """Differentiable pass from given latents instead of the analysis and the posterior: per level, the
         posterior means on the gained grid [V,C_l,h_l,w_l] (what :meth:`compress` records in
         :attr:`CompressedLatents.latents`) -> :class:`CodecOutput` on a ``height`` x ``width`` feature grid.
         Noisy quantisation in training mode (``generator`` draws the noise, or ``noise`` gives it: see
         :class:`NoisyQuantizer`), the coder's in eval mode. ``lambda_embedding``: ``self.embedding(lam)`` computed
         beforehand (it copies lambda to the device, which a CUDA graph capture must not do). ``temperature``: annealed
-        rounding instead of the noisy one in training mode (:class:`NoisyQuantizer`)."""
+        rounding instead of the noisy one in training mode; ``held_offsets``: rounding offsets of another pass
+        (both :class:`NoisyQuantizer`, training mode only)."""
         lam = check_lambda(lam)
         emb = self.embedding(lam) if lambda_embedding is None else lambda_embedding
-        quantizer = NoisyQuantizer(generator, noise, temperature) if self.training else RoundingQuantizer()
+        if held_offsets is not None and not self.training:
+            raise InputError("held rounding offsets need the codec in training mode (the noisy quantiser)")
+        quantizer = (NoisyQuantizer(generator, noise, temperature, held_offsets) if self.training
+                     else RoundingQuantizer())
         shapes = latent_shapes(self.config, height, width)
         x = self.top_down(emb, lam, latents[0].shape[0], shapes, None, quantizer, latents)
+        offsets = quantizer.rounding_offsets if self.training and temperature is None else None
         return CodecOutput(self.synthesis(x, emb)[..., :height, :width], torch.stack(quantizer.bits).sum(0),
-                           quantizer.latents)
+                           quantizer.latents, offsets)
 
     @torch.no_grad()
     def compress(self, feature: torch.Tensor, lam: float, timer: Timer = no_timer,

@@ -93,19 +93,21 @@ Decoded = tuple[torch.Tensor, torch.Tensor, Gaussians]
 
 def decode_variables(model, variables: list[torch.Tensor], target: RDOTarget, variable: str,
                      generator: torch.Generator | None = None, noise: list[torch.Tensor] | None = None,
-                     lambda_embedding: torch.Tensor | None = None, temperature: torch.Tensor | None = None
-                     ) -> Decoded:
+                     lambda_embedding: torch.Tensor | None = None, temperature: torch.Tensor | None = None,
+                     held_offsets: list[torch.Tensor] | None = None) -> Decoded:
     """The decoder from the optimised tensors -> :data:`Decoded`: the codec's pass in the model's mode from the
     latents (``variable="latents"``: ``variables`` are the latents, :meth:`LatentCodec.forward_latents`) or from
     F_c (``"feature"``: ``variables`` is [F_c], through the analysis and the posterior), then the depth head,
-    R_post, the GS head and the 2D->3D map. ``generator``/``noise``/``lambda_embedding``/``temperature``: see
-    :meth:`LatentCodec.forward_latents`."""
+    R_post, the GS head and the 2D->3D map. ``generator``/``noise``/``lambda_embedding``/``temperature``/
+    ``held_offsets``: see :meth:`LatentCodec.forward_latents` (``held_offsets`` with the latents only)."""
     cameras = target.cameras
+    if held_offsets is not None and variable != "latents":
+        raise InputError("held rounding offsets apply when the latents are optimised (variable='latents')")
     with record_function("codec"):
         if variable == "latents":
             coded = model.codec.forward_latents(variables, target.lam, cameras.height // FEATURE_STRIDE,
                                                 cameras.width // FEATURE_STRIDE, generator, noise, lambda_embedding,
-                                                temperature)
+                                                temperature, held_offsets)
         else:
             coded = model.codec(variables[0], target.lam, generator, noise, lambda_embedding, temperature)
     s, _, gaussians = model.decode_feature(coded.feature, cameras, target.neighbours)
