@@ -16,11 +16,12 @@ from codecsplat_warp.metrics import LPIPS
 from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.model.pretrained import save_pretrained
 from codecsplat_warp.model.rdo import rdo_config, refine_latents, rdo_loss, latent_target
+from codecsplat_warp.model.rdo.loop import STEP_SCALE_FLOOR, adam_step_scale
 from codecsplat_warp.nn.config import get_preset
 from train.checkpoint import latest_checkpoint, load_model_weights
 from train.data import DataSpec, make_source
-from train.semi_amortised import (INNER_LOGGED, SemiAmortisedConfig, build_model, draw_count, inner_count, parse_args,
-                                  run_model_config, semi_amortised_loss, train)
+from train.semi_amortised import (INNER_LOGGED, SemiAmortisedConfig, build_model, draw_count, inner_count,
+                                  lookahead_term, parse_args, run_model_config, semi_amortised_loss, train)
 from train.stage1 import METRICS_FILE
 
 TINY = get_preset("tiny")
@@ -71,7 +72,9 @@ def test_inner_step_counts_are_drawn_reproducibly_from_the_list_and_bad_options_
     for argv, match in ((["--inner-steps", "3,-1"], "inner-steps"), (["--inner-steps", "a"], "inner-steps"),
                         (["--inner-preset", "fast"], "inner-preset"), (["--inner-precision", "fp8"], "precision"),
                         (["--encoder-gradient", "both"], "encoder-gradient"), (["--inner-draw", "rank"], "inner-draw"),
-                        (["--inner-cuda-graphs", "2"], "inner-cuda-graphs")):
+                        (["--inner-cuda-graphs", "2"], "inner-cuda-graphs"),
+                        (["--lookahead-weight", "-1"], "lookahead-weight"),
+                        (["--lookahead-epsilon", "0"], "lookahead-epsilon")):
         with pytest.raises(InputError, match=match):
             parse_args(argv)
 
@@ -224,3 +227,72 @@ def test_a_resumed_run_gives_the_same_next_step_loss_and_logs_the_inner_loop(tmp
     for name, value in start.state_dict().items():
         if name.split(".")[0] not in ("codec", "depth_head", "refine_post"):
             assert torch.equal(trained.state_dict()[name], value), f"frozen {name} changed"
+
+
+def test_adam_step_scale_is_the_steps_derivative_by_the_gradient_with_a_floor_where_moments_are_tiny():
+    """Would catch: a scale without Adam's bias correction or (1 - beta1), or one unbounded where a latent's
+    gradient has stayed near zero (there it would dwarf every other direction)."""
+    torch.manual_seed(0)
+    variable = torch.randn(200, requires_grad=True)
+    optimiser = torch.optim.Adam([variable], lr=0.1)
+    weights = torch.linspace(0.0, 2.0, 200)
+    for _ in range(3):
+        optimiser.zero_grad()
+        (weights * variable).sum().backward()
+        optimiser.step()
+    scale = adam_step_scale(optimiser, [variable])[0]
+    root = (optimiser.state[variable]["exp_avg_sq"] / (1 - 0.999**3)).sqrt()
+    floor = STEP_SCALE_FLOOR * root.mean()
+    assert torch.allclose(root, weights, rtol=1e-5)
+    above = root > floor
+    torch.testing.assert_close(scale[above], 0.1 / root[above])
+    torch.testing.assert_close(scale[~above], torch.full_like(scale[~above], float(0.1 / floor)))
+    assert bool((~above).any()) and float(scale.max()) <= float(0.1 / floor) * (1 + 1e-6)
+
+
+@needs_lpips
+def test_the_lookahead_term_is_the_context_losss_slope_along_the_preconditioned_target_gradient(tmp_path):
+    """The look-ahead's central difference is the directional derivative of the presets' context loss (autograd's
+    straight-through one, at the same noise) along ``u = P grad L_t``, its value is ``-w rms(u)`` times it, its
+    gradient reaches the decoder, and it is zero without inner steps. Would catch: a wrong sign or scale, noise or
+    rounding that differs between the two evaluations (the difference would be noise, or jumps of whole
+    quantisation steps), or a term whose gradient never reaches the weights."""
+    model, _, batch = _training_model(tmp_path)
+    config = SemiAmortisedConfig(inner_steps="3", lookahead_weight=2.0, lookahead_epsilon=0.03)
+    with torch.no_grad():
+        latents = model(batch.context_images, batch.context_cameras, lam=512.0)["latents"]
+    rdo = rdo_config("medium", steps=1, views=2, cuda_graphs=False, check_every=0)
+    target = latent_target(model, batch.context_images, batch.context_cameras, 512.0, latents, rdo)
+    moved = [z.clone().requires_grad_(True) for z in latents]
+    loss, _ = rdo_loss(model, moved, target, rdo, torch.Generator().manual_seed((config.seed * 1_000_003 + 2) * 101 + 1))
+    context_gradient = torch.autograd.grad(loss, moved)
+    torch.manual_seed(1)
+    # u: half the context loss's own gradient, half noise (a direction where the slope stands above the
+    # rasterizer's small discontinuities, as a target gradient that a context step helps does)
+    rms = torch.cat([g.flatten() for g in context_gradient]).square().mean().sqrt()
+    u = [g / rms + torch.randn_like(g) for g in context_gradient]
+    scales = [[torch.rand_like(z) + 0.5 for z in latents]]
+    target_gradients = tuple(d / p for d, p in zip(u, scales[0]))
+    term, slope = lookahead_term(model, batch, 512.0, latents, target_gradients, scales, config, step=2)
+    size = torch.cat([d.flatten() for d in u]).square().mean().sqrt()
+    derivative = sum(float((g * d / size).sum()) for g, d in zip(context_gradient, u))
+    assert derivative > 0 and float(slope) == pytest.approx(derivative, rel=0.1)
+    assert float(term) == pytest.approx(-2.0 * float(size) * float(slope), rel=1e-5)
+    model.zero_grad(set_to_none=True)
+    term.backward()
+    reached = [p.grad for n, p in model.named_parameters() if n.startswith("codec.synthesis") and p.grad is not None]
+    assert reached and any(float(g.abs().sum()) > 0 for g in reached)
+    none, _ = lookahead_term(model, batch, 512.0, latents, target_gradients, [None], config, step=2)
+    assert float(none) == 0.0
+
+
+@needs_lpips
+def test_with_the_lookahead_the_loss_gradient_changes_only_where_inner_steps_ran(tmp_path):
+    """Would catch: a look-ahead that is never added, or one that changes the K = 0 draws (fast's objective)."""
+    model, lpips, batch = _training_model(tmp_path)
+    for steps, changes in (("0", False), ("3", True)):
+        plain = _loss_and_gradients(model, lpips, batch, SemiAmortisedConfig(inner_steps=steps))
+        ahead = _loss_and_gradients(model, lpips, batch, SemiAmortisedConfig(inner_steps=steps, lookahead_weight=5.0))
+        differ = any(not torch.allclose(plain[2][n], ahead[2][n], rtol=1e-4, atol=1e-8) for n in plain[2])
+        assert differ == changes, steps
+        assert (float(ahead[1]["lookahead_alignment"]) != 0.0) == changes

@@ -20,7 +20,16 @@ The gradient is first-order through the inner loop: the refined latents enter th
 encoder's analysis and posterior receive the decoder's gradient at ``z_K`` as if it were at ``z``. With
 ``--encoder-gradient amortised`` the refined latents enter as constants instead: the encoder then learns from the
 draws with ``K = 0`` alone (stage 2's objective, so that ``fast``'s latents are not pushed towards the refined ones,
-which cost more bytes), and the decoder from every draw. The optimisation
+which cost more bytes), and the decoder from every draw.
+
+First-order, the decoder learns to decode what the optimisation reaches, not to steer where it goes: the
+derivative of the context loss's gradient by the weights (which direction a latent move takes) needs the
+rasterizer's second derivatives, which it does not have. ``--lookahead-weight w`` adds that term for one more
+*virtual* step ``z' = z_K - w P grad_z L_c(z_K)``, with ``P`` Adam's per-element step scale at ``z_K`` held
+(:func:`~codecsplat_warp.model.rdo.loop.adam_step_scale`): the target loss ``L_t(z')`` falls to first order by
+``w <P grad_z L_t, grad_z L_c>``, whose gradient by the weights is a Hessian-vector product of ``L_c`` along
+``u = P grad_z L_t``, taken by central differences of two context-loss evaluations at ``z_K +- eps u / rms(u)``
+(:func:`lookahead_term`, as DARTS approximates its second-order term). The optimisation
 pays for its bytes: the rate term is the refined latents' estimated bits. A model trained so decodes with the
 same decoder code and bitstream format, but its weights change: it gets a new model id.
 
@@ -40,6 +49,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import pathlib
 import time
 from dataclasses import dataclass
@@ -52,17 +62,19 @@ from codecsplat_warp.metrics import LPIPS
 from codecsplat_warp.metrics.image import psnr
 from codecsplat_warp.model import CodecSplat
 from codecsplat_warp.model.pretrained import DEFAULT_CHECKPOINT
-from codecsplat_warp.model.rdo import PRESETS, refine_latents, rdo_config
+from codecsplat_warp.model.rdo import PRESETS, decode_variables, latent_target, rdo_config, rdo_loss, refine_latents
 from codecsplat_warp.nn.config import FEATURE_STRIDE, ModelConfig
 
 from . import stage1, stage2
 from .checkpoint import latest_checkpoint, model_file_config, read_weights
 from .data import BatchSource, TrainingBatch
 
-INNER_LOGGED = ("inner_steps", "context_gain", "target_gain", "target_psnr_amortised", "inner_steps_per_s")
+INNER_LOGGED = ("inner_steps", "context_gain", "target_gain", "target_psnr_amortised", "inner_steps_per_s",
+                "lookahead_alignment")
 """The inner loop's metrics, logged beside stage 2's: ``K``; the context views' PSNR gain over the ``K`` steps
 (dB; 0 when ``K`` is 0); the targets' PSNR of the refined decode minus the amortised decode's (dB); the amortised
-decode's target PSNR (dB); inner steps per second (0 when ``K`` is 0)."""
+decode's target PSNR (dB); inner steps per second (0 when ``K`` is 0); the look-ahead's alignment
+(:func:`lookahead_term`; 0 without the term)."""
 
 LOGGED = stage2.LOGGED + INNER_LOGGED
 
@@ -90,6 +102,8 @@ class SemiAmortisedConfig(stage2.Stage2Config):
     inner_draw: str = "scene"
     train_modules: str = DEFAULT_TRAIN_MODULES
     encoder_gradient: str = "refined"
+    lookahead_weight: float = 0.0
+    lookahead_epsilon: float = 0.05
 
 
 ENCODER_GRADIENTS = ("refined", "amortised")
@@ -116,6 +130,12 @@ OPTION_HELP = {
     "encoder_gradient": "where the amortised encoder (the codec's analysis and posterior) learns from: refined (the "
                         "target loss at the refined latents, passed straight through to the amortised ones) or "
                         "amortised (the draws with K = 0 alone; the refined latents enter the decoder as constants)",
+    "lookahead_weight": "weight of the look-ahead term (0: off): the gradient of the target loss after one more "
+                        "virtual Adam step on the context loss (the inner loop's step scales held), taken through "
+                        "that step's dependence on the weights by central differences; it teaches the decoder "
+                        "latent moves that carry from the context views to the targets (module docstring)",
+    "lookahead_epsilon": "half the central difference's span along the look-ahead direction (normalised to an RMS "
+                         "of 1), in quantisation steps",
     "codec_init": "not used by this stage",
     "codec_latent_channels": "not used by this stage",
     "codec_finest_stride": "not used by this stage",
@@ -161,11 +181,12 @@ def semi_amortised_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBat
     images, cameras = batch.context_images, batch.context_cameras
     with torch.autocast(images.device.type, dtype=torch.bfloat16, enabled=images.device.type == "cuda"):
         out = model(images, cameras, lam=lam, scenes=batch.scenes)
-    refined, inner = refine_scenes(bare, batch, lam, out["latents"], config, step)
+    refined, scales, inner = refine_scenes(bare, batch, lam, out["latents"], config, step)
+    entering = None
     if inner["inner_steps"] > 0:
         amortised_gaussians = out["gaussians"]
-        out = {**out, **decode_refined(bare, cameras, lam, out, refined,
-                                       through_encoder=config.encoder_gradient == "refined")}
+        entering = entering_latents(out["latents"], refined, through_encoder=config.encoder_gradient == "refined")
+        out = {**out, **decode_latents(bare, cameras, lam, out["neighbours"], entering)}
         with torch.no_grad():
             inner["target_psnr_amortised"] = psnr(stage1.render_targets(bare, amortised_gaussians, batch),
                                                   batch.target_images).mean()
@@ -174,19 +195,27 @@ def semi_amortised_loss(model: torch.nn.Module, lpips: LPIPS, batch: TrainingBat
         inner["target_gain"] = metrics["psnr"] - inner["target_psnr_amortised"]
     else:
         inner["target_psnr_amortised"] = metrics["psnr"]
+    if config.lookahead_weight > 0 and entering is not None:
+        target_gradients = torch.autograd.grad(loss, entering, retain_graph=True)
+        lookahead, inner["lookahead_alignment"] = lookahead_term(bare, batch, lam, refined, target_gradients, scales,
+                                                                 config, step)
+        loss = loss + lookahead
     return loss, {**metrics, **inner}
 
 
 def refine_scenes(model: CodecSplat, batch: TrainingBatch, lam: float, latents: list[torch.Tensor],
-                  config: SemiAmortisedConfig, step: int) -> tuple[list[torch.Tensor], dict]:
+                  config: SemiAmortisedConfig, step: int
+                  ) -> tuple[list[torch.Tensor], list[list[torch.Tensor] | None], dict]:  # fmt: skip
     """Each scene of ``batch`` refined by its drawn ``K`` inner steps from its slice of ``latents`` (per level,
-    [S*V,C_l,h_l,w_l], scene-major); returns the refined latents (detached, the same shapes) and the inner loop's
-    metrics (:data:`INNER_LOGGED`, the mean over the scenes; ``inner_steps`` a float)."""
+    [S*V,C_l,h_l,w_l], scene-major); returns the refined latents (detached, the same shapes), each scene's Adam
+    step scale after its last step (:attr:`~codecsplat_warp.model.rdo.loop.Refinement.step_scale`, per level
+    [V,C_l,h_l,w_l]; None where ``K`` is 0) and the inner loop's metrics (:data:`INNER_LOGGED`, the mean over the
+    scenes; ``inner_steps`` a float)."""
     rank = dist.get_rank() if dist.is_initialized() else 0
     counts = parse_counts(config.inner_steps, "--inner-steps", 0)
     views = batch.context_images.shape[0] // batch.scenes
     device = batch.context_images.device
-    refined, drawn, gains, seconds = [], [], [], 0.0
+    refined, scales, drawn, gains, seconds = [], [], [], [], 0.0
     for scene, cameras in enumerate(batch.scene_contexts()):
         rows = slice(scene * views, (scene + 1) * views)
         steps = inner_count(counts, config, step, rank, scene)
@@ -200,6 +229,7 @@ def refine_scenes(model: CodecSplat, batch: TrainingBatch, lam: float, latents: 
         synchronize(device)
         seconds += time.perf_counter() - began
         refined.append(result.latents)
+        scales.append(result.step_scale)
         drawn.append(steps)
         if result.first is not None:
             gains.append(psnr_of(result.last["mse"]) - psnr_of(result.first["mse"]))
@@ -207,21 +237,86 @@ def refine_scenes(model: CodecSplat, batch: TrainingBatch, lam: float, latents: 
     metrics = {"inner_steps": total / len(drawn),
                "context_gain": torch.stack(gains).mean() if gains else 0.0,
                "target_gain": 0.0, "target_psnr_amortised": 0.0,
-               "inner_steps_per_s": total / seconds if total else 0.0}
-    return [torch.cat(level) for level in zip(*refined)], metrics
+               "inner_steps_per_s": total / seconds if total else 0.0, "lookahead_alignment": 0.0}
+    return [torch.cat(level) for level in zip(*refined)], scales, metrics
 
 
-def decode_refined(model: CodecSplat, cameras, lam: float, out: dict, refined: list[torch.Tensor],
-                   through_encoder: bool) -> dict:
-    """The codec path's outputs from the refined latents, first-order: they enter the decoder as ``z +
-    stop_gradient(refined - z)`` with ``z`` the amortised ``out["latents"]``, or, with ``through_encoder``
-    False, as ``refined + 0 * z`` (no gradient reaches the encoder, which stays in the graph so that DDP finds its
-    parameters used); returns ``F_hat``, ``S``, ``D_hat``, ``rate_bits`` and ``gaussians`` to replace ``out``'s."""
+def entering_latents(latents: list[torch.Tensor], refined: list[torch.Tensor], through_encoder: bool
+                     ) -> list[torch.Tensor]:  # fmt: skip
+    """The refined latents as the decoder takes them, first-order: ``z + stop_gradient(refined - z)`` with ``z``
+    the amortised ``latents``, or, with ``through_encoder`` False, ``refined + 0 * z`` (no gradient reaches the
+    encoder, which stays in the graph so that DDP finds its parameters used); per level, ``z``'s shapes and
+    dtypes."""
     if through_encoder:
-        entering = [z + (r.to(z.dtype) - z).detach() for z, r in zip(out["latents"], refined)]
-    else:
-        entering = [r.to(z.dtype) + 0.0 * z for z, r in zip(out["latents"], refined)]
-    return decode_latents(model, cameras, lam, out["neighbours"], entering)
+        return [z + (r.to(z.dtype) - z).detach() for z, r in zip(latents, refined)]
+    return [r.to(z.dtype) + 0.0 * z for z, r in zip(latents, refined)]
+
+
+def lookahead_term(model: CodecSplat, batch: TrainingBatch, lam: float, refined: list[torch.Tensor],
+                   target_gradients: tuple[torch.Tensor, ...], scales: list[list[torch.Tensor] | None],
+                   config: SemiAmortisedConfig, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The look-ahead term of the module docstring, summed over the scenes that took inner steps, and the mean
+    alignment ``<u, grad_z L_c> / rms(u)`` of those scenes (detached; > 0 where a context step lowers the target
+    loss). Its value is ``-w rms(u) (L_c(z_K + eps u^) - L_c(z_K - eps u^)) / (2 eps)`` with ``u^ = u / rms(u)``,
+    ``u = P grad_z L_t``, the latents constant, so that its gradient is the look-ahead's by the weights alone.
+
+    Args:
+        refined: the refined latents ``z_K`` (per level, [S*V,C_l,h_l,w_l], scene-major; detached).
+        target_gradients: ``grad_z L_t`` at the latents that entered the decoder (the same shapes).
+        scales: each scene's Adam step scale ``P`` (:func:`refine_scenes`; None for a scene without inner steps).
+    """
+    views = batch.context_images.shape[0] // batch.scenes
+    epsilon, terms, alignments = config.lookahead_epsilon, [], []
+    for scene, cameras in enumerate(batch.scene_contexts()):
+        if scales[scene] is None:
+            continue
+        rows = slice(scene * views, (scene + 1) * views)
+        direction = [g[rows].detach().float() * p for g, p in zip(target_gradients, scales[scene])]
+        size = torch.cat([d.flatten() for d in direction]).square().mean().sqrt()
+        if not bool(torch.isfinite(size)) or float(size) == 0.0:
+            continue
+        direction = [d / size for d in direction]
+        latents = [z[rows].float() for z in refined]
+        rdo = rdo_config(config.inner_preset, steps=1, views=views, cuda_graphs=False, check_every=0)
+        images = batch.context_images[rows].float()
+        target = latent_target(model, images, cameras.to(dtype=torch.float32), lam, latents, rdo)
+        seed = (config.seed * 1_000_003 + step) * 101 + scene + 1
+        offsets = rounding_offsets(model, latents, lam, cameras)
+        ahead = context_loss_at(model, [z + epsilon * d for z, d in zip(latents, direction)], target, rdo, seed,
+                                offsets)
+        behind = context_loss_at(model, [z - epsilon * d for z, d in zip(latents, direction)], target, rdo, seed,
+                                 offsets)
+        slope = (ahead - behind) / (2.0 * epsilon)
+        terms.append(-config.lookahead_weight * size * slope)
+        alignments.append(slope.detach())
+    if not terms:
+        zero = refined[0].new_zeros(())
+        return zero, zero
+    return torch.stack(terms).sum(), torch.stack(alignments).mean()
+
+
+@torch.no_grad()
+def rounding_offsets(model: CodecSplat, latents: list[torch.Tensor], lam: float, cameras) -> list[torch.Tensor]:
+    """The training quantiser's rounding offsets ``round(r) - r`` at ``latents`` (per level, their shapes), which
+    :func:`context_loss_at` holds so that its decoder input is linear in the latents."""
+    coded = model.codec.forward_latents(latents, lam, cameras.height // FEATURE_STRIDE, cameras.width // FEATURE_STRIDE)
+    return coded.rounding_offsets
+
+
+def context_loss_at(model: CodecSplat, latents: list[torch.Tensor], target, rdo, seed: int,
+                    offsets: list[torch.Tensor]) -> torch.Tensor:
+    """The presets' context loss (:func:`~codecsplat_warp.model.rdo.rdo_loss`, eager, float32) at ``latents``
+    (constants), with the graph to the model's parameters. The training quantiser's noise is drawn from ``seed`` and
+    its rounding offsets are the held ``offsets`` (:func:`rounding_offsets`), so that two calls differ by the
+    latents alone, and smoothly: the straight-through rounding's linearisation, which the inner loop's gradient
+    follows (with this pass's own rounding a small move of the latents changes the decoder input by 0 or 1)."""
+    generator = torch.Generator(device=latents[0].device).manual_seed(seed)
+
+    def decoder(variables, noise_generator, _temperature):
+        return decode_variables(model, variables, target, "latents", noise_generator, held_offsets=offsets)
+
+    loss, _ = rdo_loss(model, [z.detach() for z in latents], target, rdo, generator, decoder=decoder)
+    return loss
 
 
 def decode_latents(model: CodecSplat, cameras, lam: float, neighbours: torch.Tensor,
@@ -321,6 +416,10 @@ def parse_args(argv: list[str] | None = None) -> SemiAmortisedConfig:
         raise InputError(f"--inner-cuda-graphs must be 0 or 1, got {config.inner_cuda_graphs}")
     if config.coded_every < 1:
         raise InputError("--coded-every must be >= 1")
+    if not (math.isfinite(config.lookahead_weight) and config.lookahead_weight >= 0):
+        raise InputError(f"--lookahead-weight must be >= 0, got {config.lookahead_weight}")
+    if not (math.isfinite(config.lookahead_epsilon) and config.lookahead_epsilon > 0):
+        raise InputError(f"--lookahead-epsilon must be > 0, got {config.lookahead_epsilon}")
     if config.encoder_gradient not in ENCODER_GRADIENTS:
         raise InputError(f"--encoder-gradient must be one of {', '.join(ENCODER_GRADIENTS)}, got "
                          f"{config.encoder_gradient!r}")

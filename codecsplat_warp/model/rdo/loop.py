@@ -328,11 +328,36 @@ class Refinement:
     """What :func:`refine_latents` and :func:`learned_refine` return: the refined ``latents`` (per level, float32;
     detached from :func:`refine_latents`, with the graph to the refiner's parameters from :func:`learned_refine`
     under grad mode) and the loss's parts (:func:`rdo_loss`, detached 0-dim tensors) at the ``first`` and the
-    ``last`` step (before each step's update; both None after 0 steps)."""
+    ``last`` step (before each step's update; both None after 0 steps); from :func:`refine_latents`, also Adam's
+    per-element ``step_scale`` after the last step (:func:`adam_step_scale`; None after 0 steps)."""
 
     latents: list[torch.Tensor]
     first: dict | None
     last: dict | None
+    step_scale: list[torch.Tensor] | None = None
+
+
+STEP_SCALE_FLOOR = 0.1
+""":func:`adam_step_scale` divides by at least this fraction of the mean root second moment of a level."""
+
+
+@torch.no_grad()
+def adam_step_scale(optimiser: torch.optim.Adam, variables: list[torch.Tensor]) -> list[torch.Tensor]:
+    """How Adam's next step scales a change of the gradient, per element of each of ``variables`` (per level, the
+    shapes of the latents; float32): ``(1 - beta1) / max(r, STEP_SCALE_FLOOR * mean(r))`` with ``r = sqrt(v / (1 -
+    beta2^t))`` from its second moments ``v`` after ``t`` steps, i.e. the step's derivative by the gradient with the
+    moments held (multiply by the learning rate for quantisation steps per unit of gradient). The floor (the mean
+    over the level) bounds it where ``v`` is tiny: there the gradient that the step divides would raise ``v`` too,
+    and the held moments would overstate the step's change by orders of magnitude."""
+    group = optimiser.param_groups[0]
+    beta1, beta2 = group["betas"]
+    scales = []
+    for v in variables:
+        state = optimiser.state[v]
+        root = (state["exp_avg_sq"] / (1.0 - beta2 ** float(state["step"]))).sqrt()
+        floor = (STEP_SCALE_FLOOR * root.mean()).clamp_min(group["eps"])
+        scales.append((1.0 - beta1) / torch.maximum(root, floor))
+    return scales
 
 
 def refine_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, latents: list[torch.Tensor],
@@ -361,7 +386,7 @@ def refine_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, la
             last = rdo_step(model, variables, optimiser, target, config, generator, decoder,
                             temperature=annealing_temperature(config, step, 0.0))
             first = first or last
-    return Refinement([v.detach() for v in variables], first, last)
+    return Refinement([v.detach() for v in variables], first, last, adam_step_scale(optimiser, variables))
 
 
 def learned_refine(model, images: torch.Tensor, cameras: Cameras, lam: float, latents: list[torch.Tensor],
