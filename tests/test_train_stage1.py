@@ -14,7 +14,7 @@ from train.checkpoint import (
 from train.data import DataSpec, make_source, training_scenes
 from codecsplat_warp.data import split_context_targets
 from train.pack_scenes import pack_scene
-from train.stage1 import METRICS_FILE, TrainConfig, lr_factor, make_optimizer, parse_args, train
+from train.stage1 import METRICS_FILE, TrainConfig, _loader, lr_factor, make_optimizer, parse_args, to_device, train
 from train.validate import plot_curve, read_metrics, SceneScore
 
 from codecsplat_warp.errors import InputError  # noqa: E402
@@ -181,3 +181,18 @@ def test_two_process_ddp_matches_one_process_with_the_same_global_batch(tmp_path
         updates.append(torch.cat([(steps[1][key] - steps[0][key]).flatten() for key in sorted(steps[0])]))
     assert updates[1].norm() > 0
     assert (updates[0] - updates[1]).norm() / updates[1].norm() < 0.02
+
+
+def test_batches_are_pinned_in_the_training_thread_not_by_a_loader_thread():
+    """The semi-amortised inner loop captures CUDA graphs in the training thread; a DataLoader pin-memory thread
+    pinning meanwhile invalidates the capture and dies (two runs ended so). Would catch: a loader that pins in its
+    own thread again, or a batch that does not reach the device whole."""
+    source = make_source("procedural", DataSpec(views=(2,), sizes=((32, 48),), targets=1), seed=3)
+    loader = _loader(source, 0, 2, 0, 1, 1, workers=1)
+    assert loader.pin_memory is False and loader.num_workers == 1
+    batch = next(iter(loader))
+    moved = to_device(batch, torch.device("cpu"))
+    assert torch.equal(moved.context_images, batch.context_images) and moved.keys == batch.keys
+    if torch.cuda.is_available():
+        on_gpu = to_device(batch, torch.device("cuda"))
+        assert on_gpu.context_images.is_cuda and torch.equal(on_gpu.target_images.cpu(), batch.target_images)

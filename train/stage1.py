@@ -443,7 +443,7 @@ def train(config: TrainConfig, source: BatchSource | None = None, model_config: 
         model, device_ids=[local_rank] if device.type == "cuda" else None) if world > 1 else model
 
     loader = _loader(source, start, config.steps, rank, world, config.accumulate,
-                     config.workers if device.type == "cuda" else 0, pin=device.type == "cuda")
+                     config.workers if device.type == "cuda" else 0)
     writer = None
     if rank == 0:
         try:
@@ -465,7 +465,7 @@ def train(config: TrainConfig, source: BatchSource | None = None, model_config: 
     previous_handler = signal.signal(signal.SIGTERM, lambda *_: stop_requested.set())
     try:
         for step, batches in zip(range(start, config.steps), _micro_batches(loader, config.accumulate)):
-            batches = [batch.to(device, non_blocking=True) for batch in batches]
+            batches = [to_device(batch, device) for batch in batches]
             metrics = train_step(trained, lpips, optimizer, scheduler, batches, config, step, stage)
             if average is not None:
                 average.update(model)
@@ -516,15 +516,25 @@ def _agree(stop: bool, world: int, device: torch.device) -> bool:
     return bool(flag.item())
 
 
-def _loader(source: BatchSource, start: int, steps: int, rank: int, world: int, accumulate: int, workers: int,
-            pin: bool = False):
+def _loader(source: BatchSource, start: int, steps: int, rank: int, world: int, accumulate: int, workers: int):
     """Batches of this rank for steps start..steps-1, ``accumulate`` per step (global index
-    ``(step * accumulate + micro) * world + rank``), prefetched by workers (into page-locked memory with ``pin``)."""
+    ``(step * accumulate + micro) * world + rank``), prefetched by workers. Without the DataLoader's pin-memory
+    thread: :func:`to_device` pins in the training thread (see there)."""
     indices = [(step * accumulate + micro) * world + rank for step in range(start, steps) for micro in range(accumulate)]
     dataset = StepDataset(source, steps * accumulate * world)
     return torch.utils.data.DataLoader(dataset, sampler=indices, batch_size=None, num_workers=workers,
                                        persistent_workers=False, prefetch_factor=4 if workers else None,
-                                       pin_memory=pin)
+                                       pin_memory=False)
+
+
+def to_device(batch: TrainingBatch, device: torch.device) -> TrainingBatch:
+    """``batch`` on ``device``: on CUDA through page-locked memory, pinned here, in the training thread, and copied
+    asynchronously. A DataLoader's pin-memory thread would pin while the training thread captures CUDA graphs (the
+    semi-amortised inner loop captures one per scene): a CUDA call of another thread during a capture invalidates
+    it and fails in that thread ("operation not permitted when stream is capturing"), which ended two runs."""
+    if device.type != "cuda":
+        return batch.to(device)
+    return batch.pin_memory().to(device, non_blocking=True)
 
 
 def _micro_batches(loader, accumulate: int):
