@@ -113,6 +113,11 @@ def test_refine_latents_lowers_the_context_loss_and_leaves_the_parameters_withou
         after = float(rdo_loss(model, result.latents, target, config, torch.Generator().manual_seed(1))[0])
     assert after < before
     assert float(result.last["mse"]) < float(result.first["mse"])
+    assert result.step_scale is None  # asked for by the look-ahead alone
+    scaled = refine_latents(model, images, cameras, 1024.0, latents, config, torch.Generator().manual_seed(0),
+                            step_scale=True)
+    assert [p.shape for p in scaled.step_scale] == [z.shape for z in latents]
+    assert all(bool((p > 0).all()) for p in scaled.step_scale)
     unchanged = refine_latents(model, images, cameras, 1024.0, latents, rdo_config("medium", steps=0, views=2))
     assert unchanged.first is None and all(torch.equal(a, b) for a, b in zip(unchanged.latents, latents))
 

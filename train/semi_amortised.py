@@ -209,8 +209,8 @@ def refine_scenes(model: CodecSplat, batch: TrainingBatch, lam: float, latents: 
     """Each scene of ``batch`` refined by its drawn ``K`` inner steps from its slice of ``latents`` (per level,
     [S*V,C_l,h_l,w_l], scene-major); returns the refined latents (detached, the same shapes), each scene's Adam
     step scale after its last step (:attr:`~codecsplat_warp.model.rdo.loop.Refinement.step_scale`, per level
-    [V,C_l,h_l,w_l]; None where ``K`` is 0) and the inner loop's metrics (:data:`INNER_LOGGED`, the mean over the
-    scenes; ``inner_steps`` a float)."""
+    [V,C_l,h_l,w_l]; None where ``K`` is 0 and without the look-ahead) and the inner loop's metrics
+    (:data:`INNER_LOGGED`, the mean over the scenes; ``inner_steps`` a float)."""
     rank = dist.get_rank() if dist.is_initialized() else 0
     counts = parse_counts(config.inner_steps, "--inner-steps", 0)
     views = batch.context_images.shape[0] // batch.scenes
@@ -225,7 +225,7 @@ def refine_scenes(model: CodecSplat, batch: TrainingBatch, lam: float, latents: 
         synchronize(device)
         began = time.perf_counter()
         result = refine_latents(model, batch.context_images[rows].float(), cameras.to(dtype=torch.float32), lam,
-                                [z[rows] for z in latents], rdo, generator)
+                                [z[rows] for z in latents], rdo, generator, step_scale=config.lookahead_weight > 0)
         synchronize(device)
         seconds += time.perf_counter() - began
         refined.append(result.latents)

@@ -328,8 +328,9 @@ class Refinement:
     """What :func:`refine_latents` and :func:`learned_refine` return: the refined ``latents`` (per level, float32;
     detached from :func:`refine_latents`, with the graph to the refiner's parameters from :func:`learned_refine`
     under grad mode) and the loss's parts (:func:`rdo_loss`, detached 0-dim tensors) at the ``first`` and the
-    ``last`` step (before each step's update; both None after 0 steps); from :func:`refine_latents`, also Adam's
-    per-element ``step_scale`` after the last step (:func:`adam_step_scale`; None after 0 steps)."""
+    ``last`` step (before each step's update; both None after 0 steps); from :func:`refine_latents` asked for it,
+    also Adam's per-element ``step_scale`` after the last step (:func:`adam_step_scale`; else None, and None after 0
+    steps)."""
 
     latents: list[torch.Tensor]
     first: dict | None
@@ -361,14 +362,16 @@ def adam_step_scale(optimiser: torch.optim.Adam, variables: list[torch.Tensor]) 
 
 
 def refine_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, latents: list[torch.Tensor],
-                   config: RDOConfig, generator: torch.Generator | None = None) -> Refinement:
+                   config: RDOConfig, generator: torch.Generator | None = None, step_scale: bool = False
+                   ) -> Refinement:  # fmt: skip
     """``config.steps`` steps of the encoder's optimisation (:func:`rdo_step`, the presets' loss, learning-rate
     schedule and quantiser) from ``latents`` (per level, on the gained grid), without real codings or checks:
     what semi-amortised training runs inside each of its steps (:mod:`train.semi_amortised`), on the model as it
     is (its parameters may require gradients; none reaches them: they are frozen while it runs). With
     ``config.cuda_graphs`` on CUDA and at least :data:`~.graphs.GRAPH_MIN_STEPS` steps the decoder and the loss are
     replayed as CUDA graphs, as in the presets. ``config`` must have a step count and ``variable="latents"``;
-    ``images`` [V,3,H,W] float32 in [0,1], ``cameras`` the V context cameras."""
+    ``images`` [V,3,H,W] float32 in [0,1], ``cameras`` the V context cameras. ``step_scale``: also return Adam's
+    step scale after the last step (:func:`adam_step_scale`; what a look-ahead needs, a few kernels per call)."""
     if config.steps is None or config.variable != "latents":
         raise InputError("refine_latents needs a step count and variable='latents'")
     variables = [z.detach().float().clone().requires_grad_(True) for z in latents]
@@ -386,7 +389,8 @@ def refine_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, la
             last = rdo_step(model, variables, optimiser, target, config, generator, decoder,
                             temperature=annealing_temperature(config, step, 0.0))
             first = first or last
-    return Refinement([v.detach() for v in variables], first, last, adam_step_scale(optimiser, variables))
+    scale = adam_step_scale(optimiser, variables) if step_scale else None
+    return Refinement([v.detach() for v in variables], first, last, scale)
 
 
 def learned_refine(model, images: torch.Tensor, cameras: Cameras, lam: float, latents: list[torch.Tensor],
