@@ -19,7 +19,7 @@ integer pixel radii from the opacity-aware extent ``min(3.33, sqrt(2 ln(255 opac
 each row reaches (:mod:`.raster_reach`), input validation flags and the list of visible rows. Its twin
 ``project_gaussians_differentiable`` recomputes only the differentiable row of the listed visible Gaussians and is
 launched with ``adjoint=True`` for the backward pass (straight-line code, so Warp's automatic adjoint is exact; a
-float64 gradcheck covers it).
+float64 gradcheck covers it); with SH colours :func:`sh_coefficient_gradients` gives the coefficients' gradient.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from .raster_reach import row_reach
 from .raster_tiles import (
     DEPTH_RANGE, DEPTH_RANGE_LINES, NO_DEPTH_BITS, NUM_FLAGS, depth_bits, reached_tile_count, tile_rect,
 )  # fmt: skip
-from .sh import sh_color
+from .sh import MAX_COEFFICIENTS, sh_basis, sh_color, sh_count
 
 MAX_EXTENT_SIGMAS = 3.33
 """Largest bounding extent in standard deviations (gsplat's default)."""
@@ -474,7 +474,9 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         Launch with ``adjoint=True``, ``adj_outputs`` = gradient of the rows, to get gradients of means,
         quats, scales, opacities and coeffs (accumulated over cameras). Culled rows get no gradient. Walking the
         list instead of all ``(b, n)`` keeps a warp from running the adjoint because one of its 32 Gaussians is
-        visible: with 90 % of the Gaussians off-screen nearly every warp would.
+        visible: with 90 % of the Gaussians off-screen nearly every warp would. Give SH coefficients no adjoint
+        array (the gradient through the view direction still reaches the means) and take their gradient from
+        :func:`sh_coefficient_gradients`: here it would cost 3 (degree + 1)^2 atomic adds per row.
         """
         t = wp.tid()
         if wp.int64(t) >= visible_count[0]:
@@ -498,3 +500,54 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         write_row(splats, i, projected_mean(p, K), conic, effective_opacity, color, p[2])
 
     return ProjectionKernels(project_gaussians, project_gaussians_differentiable)
+
+
+@wp.kernel(enable_backward=False, module="unique")
+def sh_coefficient_gradients(
+    means: wp.array(dtype=Any),
+    viewmats: wp.array(dtype=Any),
+    origin: wp.array(dtype=Any),
+    radii: wp.array(dtype=wp.vec2i),
+    splats: wp.array2d(dtype=Any),
+    grad_rows: wp.array2d(dtype=Any),
+    sh_degree: int,
+    first_gaussian: int,
+    grad_coeffs: wp.array2d(dtype=Any),
+):
+    """Write the gradient of the SH coefficients of Gaussian ``first_gaussian + t`` (thread ``t``, ``dim=count``),
+    summed over the cameras that see it, into ``grad_coeffs``.
+
+    A row's colour is ``max(sum_k basis_k(d) c_k + 0.5, 0)`` per channel, linear in the coefficients: where the
+    projected colour is above 0, channel ``j`` of coefficient ``k`` gets ``basis_k(d) * grad[j]``, ``d`` the
+    direction from the camera centre to the Gaussian. The thread sums its cameras' terms in registers, in camera
+    order, and writes each coefficient once (no atomics).
+
+    Args:
+        means: ``[N]`` 3-vectors; viewmats: ``[B]`` 4x4 and origin: ``[3]`` from :func:`prepare_cameras`.
+        radii: ``[B*N]`` pixel radii from :func:`project_gaussians` (0: culled, no gradient).
+        splats: ``[B*N, 10]`` the projected rows; grad_rows: ``[B*N, 10]`` their gradient.
+        sh_degree: 0..3; grad_coeffs: ``[N, K]`` RGB vectors, ``K >= (sh_degree + 1)^2``; the coefficients above
+            the degree are left as they are.
+    """
+    n = first_gaussian + wp.tid()
+    num = means.shape[0]
+    mean = means[n] - wp.vector(origin[0], origin[1], origin[2])
+    count = sh_count(sh_degree)
+    zero = splats.dtype(0.0)
+    total = wp.matrix(shape=(MAX_COEFFICIENTS, 3), dtype=splats.dtype)
+    for b in range(viewmats.shape[0]):
+        i = b * num + n
+        radius = radii[i]
+        if radius[0] != 0 or radius[1] != 0:
+            g = wp.vector(
+                wp.where(splats[i, RED] > zero, grad_rows[i, RED], zero),
+                wp.where(splats[i, GREEN] > zero, grad_rows[i, GREEN], zero),
+                wp.where(splats[i, BLUE] > zero, grad_rows[i, BLUE], zero),
+            )
+            basis = sh_basis(mean - camera_center(viewmats[b]), sh_degree)
+            for k in range(wp.static(MAX_COEFFICIENTS)):
+                if k < count:
+                    total[k] = total[k] + g * basis[k]
+    for k in range(wp.static(MAX_COEFFICIENTS)):
+        if k < count:
+            grad_coeffs[n, k] = total[k]

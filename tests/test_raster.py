@@ -493,6 +493,35 @@ def test_projection_lists_each_visible_row_once(device):
 
 
 @pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("sh_degree", [None, 2])
+def test_projection_backward_sums_each_gaussians_cameras(device, sh_degree):
+    """The projection backward (one thread per visible row; with SH colours the coefficients in a kernel of their
+    own, one thread per Gaussian summing its cameras) gives the sum over the cameras of each camera's gradient, with
+    Gaussians culled in some of the three cameras (behind one of them) and others in all."""
+    means, quats, scales, opacities, colors, viewmats, Ks = make_scene(60, 19, 13, 1, sh_degree, seed=8)
+    viewmats = viewmats.expand(3, 4, 4).clone()
+    viewmats[1, 0, 3] += 0.4
+    viewmats[2, 2, 3] -= 3.0  # amid the Gaussians: about half of them behind it
+    Ks = Ks.expand(3, 3, 3)
+    leaves = [t.to(device).requires_grad_() for t in (means, quats, scales, opacities, colors)]
+    weights = torch.rand(3, 13, 19, 5, dtype=torch.float64, device=device)
+
+    def gradients(cameras):
+        rgb, depth, alpha, meta = rasterize(*leaves, viewmats[cameras].to(device), Ks[cameras].to(device), 19, 13,
+                                            mode="antialiased", sh_degree=sh_degree)  # fmt: skip
+        loss = (torch.cat([rgb, depth, alpha], dim=-1) * weights[cameras]).sum()
+        return torch.autograd.grad(loss, leaves), meta.radii
+
+    together, radii = gradients([0, 1, 2])
+    alone = [gradients([camera])[0] for camera in range(3)]
+    seen = (radii > 0).any(-1).cpu()
+    assert seen.all(dim=0).any() and not seen.all(dim=0).all() and (~seen[2]).any()
+    for name, total, parts in zip(("means", "quats", "scales", "opacities", "colors"), together, zip(*alone)):
+        assert total.abs().max() > 0, name
+        torch.testing.assert_close(total, sum(parts), rtol=1e-10, atol=1e-12, msg=name)
+
+
+@pytest.mark.parametrize("device", DEVICES)
 def test_projection_folds_the_visible_depth_range(device, monkeypatch):
     """The smallest and largest float32 bit pattern of a visible row's depth, as the projection folds them over the
     lines of the flag buffer (on CUDA from 94 warps spread over the lines; culled rows, here the ones behind the

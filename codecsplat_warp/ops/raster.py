@@ -509,10 +509,12 @@ def _list_visible_in_order(radii: torch.Tensor, visible: _Visible) -> None:
 
 
 def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, cameras: _Cameras, visible: _Visible,
-                      settings: _Settings, wdev) -> list[torch.Tensor]:  # fmt: skip
+                      splats: torch.Tensor, radii: torch.Tensor, settings: _Settings,
+                      wdev) -> list[torch.Tensor]:  # fmt: skip
     """Gradients of means ``[N,3]``, quats ``[N,4]``, scales ``[N,3]``, opacities ``[N]`` and coeffs ``[N,K,3]``
-    from the gradient of the projected rows ``[B*N, 10]`` (views of one zero-initialised buffer); one thread per
-    row of the ``visible`` list.
+    from the gradient of the projected rows ``[B*N, 10]`` (views of one zero-initialised buffer), given the
+    forward's rows ``splats [B*N, 10]`` and ``radii [B*N, 2]``; one thread per row of the ``visible`` list, and with
+    SH colours one per Gaussian for the coefficients (:func:`_sh_coefficient_gradients`).
 
     On the CPU (where the list is in row order) the rows are taken camera after camera, each camera's split over
     the threads: a Gaussian has one row per camera, so no two threads add to its gradient at once (Warp's CPU
@@ -523,12 +525,16 @@ def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, camera
     flat = means.new_zeros(sum(sizes)).split_with_sizes(sizes)
     grads = [flat[0].view(N, 3), flat[1].view(N, 4), flat[2].view(N, 3), flat[3], flat[4].view(N, K, 3)]
     zero = _ZERO[dtype]
-    adj_args = [vectors(grads[0]), vectors(grads[1]), vectors(grads[2]), grads[3], vectors(grads[4]), None, None, None,
+    spherical_harmonics = settings.sh_degree >= 0
+    if spherical_harmonics:
+        _sh_coefficient_gradients(grad_rows, means, cameras, splats, radii, settings.sh_degree, grads[4], wdev)
+    adj_coeffs = None if spherical_harmonics else vectors(grads[4])
+    adj_args = [vectors(grads[0]), vectors(grads[1]), vectors(grads[2]), grads[3], adj_coeffs, None, None, None,
                 None, None, 0, 0, 0, zero, 0, grad_rows]  # fmt: skip
     inputs = _projection_inputs(means, quats, scales, opacities, coeffs, cameras)
     settings_args = [settings.sh_degree, settings.width, settings.height, _LOW_PASS[dtype], int(settings.antialiased),
                      torch.empty_like(grad_rows)]  # fmt: skip
-    kernel = raster_project.projection_kernels(settings.sh_degree >= 0).differentiable
+    kernel = raster_project.projection_kernels(spherical_harmonics).differentiable
     if means.device.type != "cpu":
         launch(kernel, B * N, [*inputs, visible.count, visible.rows, *settings_args], wdev, adj_args=adj_args,
                layout=dtype)  # fmt: skip
@@ -544,6 +550,18 @@ def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, camera
             for first, count in pieces
         ])  # fmt: skip
     return grads
+
+
+def _sh_coefficient_gradients(grad_rows, means, cameras: _Cameras, splats: torch.Tensor, radii: torch.Tensor,
+                              sh_degree: int, grad_coeffs: torch.Tensor, wdev) -> None:  # fmt: skip
+    """Write the SH coefficients' gradient ``grad_coeffs [N,K,3]`` (up to ``sh_degree``) from the gradient of the
+    projected rows ``[B*N, 10]``, one thread per Gaussian (split over the threads on the CPU)."""
+    args = [vectors(means), matrices(cameras.viewmats), cameras.origin, vectors(radii), splats, grad_rows, sh_degree]
+    run_concurrently([
+        functools.partial(launch, raster_project.sh_coefficient_gradients, count,
+                          [*args, first, vectors(grad_coeffs)], wdev, layout=means.dtype)
+        for first, count in row_chunks(means.shape[0], means.device)
+    ])  # fmt: skip
 
 
 def _length(count: int) -> torch.Tensor:
@@ -570,6 +588,7 @@ class _ProjectGaussians(torch.autograd.Function):
         ctx.settings = settings
         ctx.cameras = cameras
         ctx.visible = visible
+        ctx.rows = splats, radii
         ctx.save_for_backward(means, quats, scales, opacities, coeffs)
         ctx.mark_non_differentiable(radii, flags)
         return splats.view(B, N, raster_row.ROW_WIDTH), radii.view(B, N, 2), flags
@@ -580,7 +599,7 @@ class _ProjectGaussians(torch.autograd.Function):
         grad_rows = grad_splats.reshape(-1, raster_row.ROW_WIDTH).contiguous()
         with warp_scope(means.device) as wdev:
             grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs, ctx.cameras, ctx.visible,
-                                      ctx.settings, wdev)  # fmt: skip
+                                      *ctx.rows, ctx.settings, wdev)  # fmt: skip
         return (*grads, None, None, None)
 
 
@@ -770,15 +789,17 @@ class _Saved(NamedTuple):
 
     Attributes:
         colors_or_black: ``[B,3]`` background or ``[0,3]``; cameras: the prepared cameras; splats: projected rows
-        ``[B*N, 10]``; visible: the projection's list of visible rows; ranges: ``[B*tiles, 2]`` int32; sorted_ids:
-        ``[count]`` int32; state: ``[P,2]`` (final T, accumulated depth); last: ``[P]`` int32; composite: the
-        compositing layout; composite_state: what its forward kept for the backward (None in the block layout).
+        ``[B*N, 10]``; visible: the projection's list of visible rows; radii: ``[B*N, 2]`` int32 pixel radii (0 for a
+        culled row); ranges: ``[B*tiles, 2]`` int32; sorted_ids: ``[count]`` int32; state: ``[P,2]`` (final T,
+        accumulated depth); last: ``[P]`` int32; composite: the compositing layout; composite_state: what its forward
+        kept for the backward (None in the block layout).
     """
 
     colors_or_black: torch.Tensor
     cameras: _Cameras
     splats: torch.Tensor
     visible: _Visible
+    radii: torch.Tensor
     ranges: torch.Tensor
     sorted_ids: torch.Tensor
     state: torch.Tensor
@@ -817,8 +838,8 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, l
     H, W = settings.height, settings.width
     depth = depth.view(B, H, W, 1) if settings.render_depth else None
     outputs = (color.view(B, H, W, 3), depth, alpha.view(B, H, W, 1), radii.view(B, N, 2), count)
-    return outputs, _Saved(colors_or_black, cameras, splats, visible, ranges, sorted_ids, state, last, composite,
-                           composite_state)
+    return outputs, _Saved(colors_or_black, cameras, splats, visible, radii, ranges, sorted_ids, state, last,
+                           composite, composite_state)
 
 
 class _Rasterize(torch.autograd.Function):
@@ -853,7 +874,7 @@ class _Rasterize(torch.autograd.Function):
             with warp_scope(means.device) as wdev:
                 grad_rows = saved.composite.backward(saved, colors_or_black, settings, output_grads, wdev)
                 grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs, saved.cameras,
-                                          saved.visible, settings, wdev)  # fmt: skip
+                                          saved.visible, saved.splats, saved.radii, settings, wdev)  # fmt: skip
             grads[4] = grads[4].view(ctx.colors_shape)
         grad_background = None
         if ctx.needs_input_grad[5] and grad_color is not None:
