@@ -35,7 +35,7 @@ from .raster_row import (
 )  # fmt: skip
 from .raster_reach import row_reach
 from .raster_tiles import (
-    DEPTH_RANGE, DEPTH_RANGE_LINES, NO_DEPTH_BITS, NUM_FLAGS, depth_bits, reached_tile_count, tile_rect,
+    DEPTH_RANGE, DEPTH_RANGE_LINES, NO_DEPTH_BITS, NUM_FLAGS, depth_bits, reached_tiles, tile_rect,
 )  # fmt: skip
 from .sh import MAX_COEFFICIENTS, sh_basis, sh_color, sh_count
 
@@ -349,6 +349,7 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         splats: wp.array2d(dtype=Any),
         radii: wp.array(dtype=wp.vec2i),
         tile_counts: wp.array(dtype=wp.int64),
+        tile_masks: wp.array(dtype=wp.int64),
         flags: wp.array(dtype=wp.int64),
         visible_count: wp.array(dtype=wp.int64),
         visible_rows: wp.array(dtype=wp.int32),
@@ -371,7 +372,8 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
                 (e.g. a view's own pixel-aligned Gaussians); ``[0]`` culls none.
             first_gaussian: the Gaussian of thread ``(b, 0)``.
             splats: output rows ``[B*N, 10]``; radii: ``[B*N]`` pixel radii (0 = culled);
-            tile_counts: ``[B*N]`` int64 tiles reached (:func:`.raster_tiles.reached_tile_count`);
+            tile_counts: ``[B*N]`` int64 tiles reached (0 for a culled row), tile_masks: ``[B*N]`` int64 which ones
+                (:func:`.raster_tiles.reached_tiles`; unwritten for a culled row);
             flags: ``[NUM_FLAGS]`` counters (initialised by :func:`prepare_cameras`): validation counts and the range
                 of the visible depths' float32 bits.
             visible_count: ``[1]`` int64 (zeroed by :func:`prepare_cameras`), visible_rows: ``[B*N]`` int32: the
@@ -443,9 +445,10 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         rect = tile_rect(mean2d[0], mean2d[1], radius, tile_size, tiles_x, tiles_y)
         radii[i] = radius
         reach = row_reach(effective_opacity, conic[0], conic[1], conic[2], rounding)
-        reached = reached_tile_count(mean2d[0], mean2d[1], conic[0], conic[1], conic[2], reach, rect, tile_size,
-                                     width, height)  # fmt: skip
+        reached, mask = reached_tiles(mean2d[0], mean2d[1], conic[0], conic[1], conic[2], reach, rect, tile_size,
+                                      width, height)  # fmt: skip
         tile_counts[i] = wp.int64(reached)
+        tile_masks[i] = mask
         visible_rows[warp_append(visible_count, 0)] = i
         warp_fold_range(flags, DEPTH_RANGE, DEPTH_RANGE_LINES, depth_bits(p[2]))
 

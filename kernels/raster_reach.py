@@ -17,10 +17,10 @@ The compositing skips a row at a pixel where its alpha ``opacity * exp(-power)``
   pixel of its bounding box.
 
 A tile is reached when the exact quadratic's minimum over the rectangle spanned by the tile's pixel centres is at
-most ``R`` (:func:`tile_reached`, in float64). Tiles that fail the test hold no pixel where the row's alpha reaches
-the threshold, so leaving the row out of them changes no render and no gradient; it leaves out the corners of the
-bounding box of a tilted or elongated Gaussian (about a fifth of the intersections of the shipped model's Gaussians,
-8 views at 256x448).
+most ``R`` (:func:`tile_reached`, in float64, with the row's conic prepared once by :func:`reach_conic`). Tiles
+that fail the test hold no pixel where the row's alpha reaches the threshold, so leaving the row out of them changes
+no render and no gradient; it leaves out the corners of the bounding box of a tilted or elongated Gaussian (about a
+fifth of the intersections of the shipped model's Gaussians, 8 views at 256x448).
 """
 
 from __future__ import annotations
@@ -69,20 +69,52 @@ def reach_power(a: Any, b: Any, c: Any, skip: Any, rounding: wp.float64):
     return wp.float64(skip) * (wp.float64(1.0) + wp.float64(4.0) * spread) + rounding
 
 
+@wp.struct
+class ReachConic:
+    """A row's conic in float64, with the reciprocals of its diagonal, and its reach power (:func:`reach_conic`):
+    what :func:`tile_reached` tests every tile of the row's rectangle with."""
+
+    a: wp.float64
+    b: wp.float64
+    c: wp.float64
+    inverse_a: wp.float64
+    inverse_c: wp.float64
+    reach: wp.float64
+
+
 @wp.func
-def edge_minimum(a: wp.float64, b: wp.float64, c: wp.float64, low: wp.float64, high: wp.float64, v: wp.float64):
-    """Minimum over ``u`` in ``[low, high]`` of ``0.5 (a u^2 + c v^2) + b u v`` (``a > 0``)."""
-    u = wp.clamp(-b * v / a, low, high)
+def reach_conic(a: Any, b: Any, c: Any, reach: wp.float64):
+    """The :class:`ReachConic` of a row with conic ``(a, b, c)`` and reach power ``reach`` (:func:`reach_power`;
+    a finite reach implies ``a, c > 0``)."""
+    conic = ReachConic()
+    conic.a = wp.float64(a)
+    conic.b = wp.float64(b)
+    conic.c = wp.float64(c)
+    conic.reach = reach
+    conic.inverse_a = wp.float64(0.0)
+    conic.inverse_c = wp.float64(0.0)
+    if wp.isfinite(reach):
+        conic.inverse_a = wp.float64(1.0) / conic.a
+        conic.inverse_c = wp.float64(1.0) / conic.c
+    return conic
+
+
+@wp.func
+def edge_minimum(a: wp.float64, b: wp.float64, c: wp.float64, inverse_a: wp.float64, low: wp.float64,
+                 high: wp.float64, v: wp.float64):  # fmt: skip
+    """Minimum over ``u`` in ``[low, high]`` of ``0.5 (a u^2 + c v^2) + b u v`` (``a > 0``, ``inverse_a = 1 / a``)."""
+    u = wp.clamp(-b * v * inverse_a, low, high)
     return wp.float64(0.5) * (a * u * u + c * v * v) + b * u * v
 
 
 @wp.func
-def tile_reached(mean_x: Any, mean_y: Any, a: Any, b: Any, c: Any, reach: wp.float64, tx: int, ty: int,
-                 tile_size: int, width: int, height: int):  # fmt: skip
+def tile_reached(mean_x: Any, mean_y: Any, conic: ReachConic, tx: int, ty: int, tile_size: int, width: int,
+                 height: int):  # fmt: skip
     """Whether tile ``(tx, ty)`` of a ``width`` x ``height`` image holds a pixel centre where the exact power of the
-    row (mean in pixels, conic ``(a, b, c)``) is at most ``reach`` (:func:`reach_power`); always for an infinite
-    ``reach``. The test takes the quadratic's minimum over the rectangle of the tile's pixel centres."""
-    if not wp.isfinite(reach):
+    row (mean in pixels, :func:`reach_conic`) is at most its reach power; always for an infinite reach. The test
+    takes the quadratic's minimum over the rectangle of the tile's pixel centres; first, as a shortcut, its value at
+    the rectangle's point nearest the mean (at most ``reach`` there: reached)."""
+    if not wp.isfinite(conic.reach):
         return True
     half = wp.float64(0.5)
     left = wp.float64(tx * tile_size) + half - wp.float64(mean_x)
@@ -90,15 +122,18 @@ def tile_reached(mean_x: Any, mean_y: Any, a: Any, b: Any, c: Any, reach: wp.flo
     top = wp.float64(ty * tile_size) + half - wp.float64(mean_y)
     bottom = wp.float64(wp.min((ty + 1) * tile_size, height)) - half - wp.float64(mean_y)
     zero = wp.float64(0.0)
-    if left <= zero and right >= zero and top <= zero and bottom >= zero:
+    a = conic.a
+    b = conic.b
+    c = conic.c
+    u = wp.clamp(zero, left, right)
+    v = wp.clamp(zero, top, bottom)
+    if half * (a * u * u + c * v * v) + b * u * v <= conic.reach:
         return True
-    a64 = wp.float64(a)
-    b64 = wp.float64(b)
-    c64 = wp.float64(c)
-    lowest = wp.min(edge_minimum(a64, b64, c64, left, right, top), edge_minimum(a64, b64, c64, left, right, bottom))
-    lowest = wp.min(lowest, edge_minimum(c64, b64, a64, top, bottom, left))
-    lowest = wp.min(lowest, edge_minimum(c64, b64, a64, top, bottom, right))
-    return lowest <= reach
+    lowest = wp.min(edge_minimum(a, b, c, conic.inverse_a, left, right, top),
+                    edge_minimum(a, b, c, conic.inverse_a, left, right, bottom))  # fmt: skip
+    lowest = wp.min(lowest, edge_minimum(c, b, a, conic.inverse_c, top, bottom, left))
+    lowest = wp.min(lowest, edge_minimum(c, b, a, conic.inverse_c, top, bottom, right))
+    return lowest <= conic.reach
 
 
 @wp.func

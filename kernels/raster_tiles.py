@@ -3,10 +3,11 @@
 One intersection is one (camera, Gaussian, tile) triple, for every tile of the Gaussian's bounding rectangle
 (:func:`tile_rect`) that holds a pixel the Gaussian may reach (:func:`.raster_reach.tile_reached`); the others hold
 no pixel where its alpha reaches the threshold. A row's intersections are written in the order of its rectangle's
-tiles, row by row. An intersection's key is ``[flat tile | depth key]``: the flat tile index
-``camera * tiles_per_image + tile`` above ``depth_bits`` bits of depth key, so one radix sort over the key's
-used bits orders intersections by camera, then tile, then depth. The depth key is
-``(float32 bits of depth - depth_base) >> depth_shift``: a positive float32 sorts like its bit pattern, and
+tiles, row by row. The projection tests the tiles once: it counts them and, for a rectangle of at most
+:data:`MASK_TILES` tiles, hands them to the emission as a bit mask (:func:`reached_tiles`). An intersection's key
+is ``[flat tile | depth key]``: the flat tile index ``camera * tiles_per_image + tile`` above ``depth_bits`` bits of
+depth key, so one radix sort over the key's used bits orders intersections by camera, then tile, then depth. The
+depth key is ``(float32 bits of depth - depth_base) >> depth_shift``: a positive float32 sorts like its bit pattern, and
 subtracting the smallest visible pattern (``depth_base``) keeps only the bits the depths of one call span. The
 caller picks ``depth_shift`` so that the key fits the key dtype (uint32 or int64); with ``depth_shift = s``
 depths within ``2^s`` float32 units in the last place of each other tie, and ties keep the order of the
@@ -29,7 +30,7 @@ from typing import Any
 import warp as wp
 
 from .lanes import CACHE_LINE_INT64
-from .raster_reach import row_reach, tile_reached
+from .raster_reach import reach_conic, row_reach, tile_reached
 from .raster_row import CONIC_A, CONIC_B, CONIC_C, DEPTH, MEAN_X, MEAN_Y, OPACITY
 
 wp.set_module_options({"enable_backward": False})
@@ -89,16 +90,36 @@ def tile_rect(x: Any, y: Any, radius: wp.vec2i, tile_size: int, tiles_x: int, ti
     return wp.vec4i(x0, y0, x1, y1)
 
 
+MASK_TILES = 64
+"""Most tiles a row's rectangle may span for the projection to hand the tiles it reaches to the emission as a bit
+mask (:func:`reached_tiles`); the emission tests the tiles of larger rectangles again."""
+
+
 @wp.func
-def reached_tile_count(mean_x: Any, mean_y: Any, a: Any, b: Any, c: Any, reach: wp.float64, rect: wp.vec4i,
-                       tile_size: int, width: int, height: int):  # fmt: skip
-    """How many tiles of ``rect`` (:func:`tile_rect`) the row reaches (:func:`.raster_reach.tile_reached`)."""
+def rect_area(rect: wp.vec4i):
+    """Tiles in a :func:`tile_rect` rectangle."""
+    return (rect[2] - rect[0]) * (rect[3] - rect[1])
+
+
+@wp.func
+def reached_tiles(mean_x: Any, mean_y: Any, a: Any, b: Any, c: Any, reach: wp.float64, rect: wp.vec4i,
+                  tile_size: int, width: int, height: int):  # fmt: skip
+    """``(count, mask)``: how many tiles of ``rect`` (:func:`tile_rect`) the row reaches
+    (:func:`.raster_reach.tile_reached`), and for a rectangle of at most :data:`MASK_TILES` tiles which ones (int64,
+    bit ``j`` for the ``j``-th tile of the rectangle row by row; 0 for a larger one)."""
+    conic = reach_conic(a, b, c, reach)
     count = int(0)
+    mask = wp.int64(0)
+    masked = rect_area(rect) <= MASK_TILES
+    j = int(0)
     for ty in range(rect[1], rect[3]):
         for tx in range(rect[0], rect[2]):
-            if tile_reached(mean_x, mean_y, a, b, c, reach, tx, ty, tile_size, width, height):
+            if tile_reached(mean_x, mean_y, conic, tx, ty, tile_size, width, height):
                 count += 1
-    return count
+                if masked:
+                    mask = mask | (wp.int64(1) << wp.int64(j))
+            j += 1
+    return count, mask
 
 
 @wp.func
@@ -158,6 +179,7 @@ def emit_intersections(
     splats: wp.array2d(dtype=Any),
     radii: wp.array(dtype=wp.vec2i),
     counts: wp.array(dtype=wp.int64),
+    masks: wp.array(dtype=wp.int64),
     inclusive_offsets: wp.array(dtype=wp.int64),
     flags: wp.array(dtype=wp.int64),
     num_gaussians: int,
@@ -186,7 +208,9 @@ def emit_intersections(
     Args:
         splats: projected rows ``[B*N, 10]`` (x, y, conic..., depth in column 9).
         radii: pixel radii ``[B*N]``; zero means culled.
-        counts: int64 intersections per row ``[B*N]``; ``inclusive_offsets`` their inclusive prefix sum.
+        counts: int64 intersections per row ``[B*N]``; ``inclusive_offsets`` their inclusive prefix sum; masks:
+            ``[B*N]`` int64, the tiles of each row's rectangle it reaches (:func:`reached_tiles`, rectangles of at
+            most :data:`MASK_TILES` tiles: the tiles are not tested again).
         flags: the int64 flag buffer with the visible depth range as the projection folded it.
         num_tiles: flat tiles ``B * tiles_x * tiles_y`` (below 2^31); width, height: the image in pixels;
             rounding: :data:`.raster_reach.POWER_ROUNDING` of the rows' dtype (the projection counted with it);
@@ -211,15 +235,27 @@ def emit_intersections(
     first_tile = (i // num_gaussians) * tiles_x * tiles_y
     mean_x = splats[i, MEAN_X]
     mean_y = splats[i, MEAN_Y]
-    a = splats[i, CONIC_A]
-    b = splats[i, CONIC_B]
-    c = splats[i, CONIC_C]
-    reach = row_reach(splats[i, OPACITY], a, b, c, rounding)
     rect = tile_rect(mean_x, mean_y, radii[i], tile_size, tiles_x, tiles_y)
     low = depth_key(splats[i, DEPTH], layout[0], layout[1])
     depth_key_bits = wp.int64(layout[2])
     k = int(inclusive_offsets[i] - count)
     end = wp.min(int(inclusive_offsets[i]), capacity)
+    rect_width = rect[2] - rect[0]
+    if rect_area(rect) <= MASK_TILES:
+        mask = masks[i]
+        for j in range(rect_area(rect)):
+            if k >= end:
+                return
+            if (mask >> wp.int64(j)) & wp.int64(1) != wp.int64(0):
+                tile = wp.int64(first_tile + (rect[1] + j // rect_width) * tiles_x + rect[0] + j % rect_width)
+                keys[k] = keys.dtype((tile << depth_key_bits) | low)
+                values[k] = i
+                k += 1
+        return
+    a = splats[i, CONIC_A]
+    b = splats[i, CONIC_B]
+    c = splats[i, CONIC_C]
+    conic = reach_conic(a, b, c, row_reach(splats[i, OPACITY], a, b, c, rounding))
     # The reached tiles; then, only if the projection counted more (the same test compiled into another kernel),
     # unreached ones, which the compositing finds nothing to add from.
     for unreached in range(2):
@@ -227,7 +263,7 @@ def emit_intersections(
             for tx in range(rect[0], rect[2]):
                 if k >= end:
                     return
-                if tile_reached(mean_x, mean_y, a, b, c, reach, tx, ty, tile_size, width, height) == (unreached == 0):
+                if tile_reached(mean_x, mean_y, conic, tx, ty, tile_size, width, height) == (unreached == 0):
                     tile = wp.int64(first_tile + ty * tiles_x + tx)
                     keys[k] = keys.dtype((tile << depth_key_bits) | low)
                     values[k] = i

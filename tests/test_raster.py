@@ -98,6 +98,18 @@ def test_a_call_without_a_tile_size_uses_its_devices_default(device):
 
 
 @pytest.mark.parametrize("device", DEVICES)
+def test_rectangles_of_more_tiles_than_a_mask_holds_match_the_reference(device):
+    """The projection hands the tiles a row reaches to the emission as a 64-bit mask of its rectangle; rows whose
+    rectangle spans more tiles (here the large Gaussians, over 64 tiles of 4 pixels) are tested again there."""
+    scene = make_scene(30, 48, 40, 1, device=device)
+    scene[2][:10] *= 6.0
+    ours, ref, grads_ours, grads_ref = render_both(scene, 48, 40, tile_size=4)
+    tiles_spanned = ((2 * ours[3].radii[0] + 4) // 4).prod(dim=-1)
+    assert (tiles_spanned > 64).sum() >= 3 and ((tiles_spanned > 0) & (tiles_spanned <= 64)).sum() >= 10
+    assert_matches_reference(ours, ref, grads_ours, grads_ref, image_atol=1e-9, grad_rtol=1e-7)
+
+
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("tile_size", [20, 32])
 def test_tiles_larger_than_16_match_16_with_gradients(device, tile_size):
     """On CUDA a tile of more than 256 pixels spans several blocks, the last one partly idle."""
@@ -590,8 +602,8 @@ def published_key_layout(num_tiles: int, nearest_bits: int, farthest_bits: int, 
     settings = raster_ops._make_settings(torch.zeros(1, 3), 16 * num_tiles, 16, 0.01, 100.0, "classic", None, True,
                                          16, 1e-4)  # fmt: skip
     radii = torch.zeros(1, 2, dtype=torch.int32, device=device)
-    binning = raster_ops._Binning(torch.zeros(1, 10, device=device), radii, ints, ints[:1], ints[1:2], ints[2:], 1,
-                                  settings)  # fmt: skip
+    binning = raster_ops._Binning(torch.zeros(1, 10, device=device), radii, ints, ints[:1], torch.zeros_like(ints[:1]),
+                                  ints[1:2], ints[2:], 1, settings)  # fmt: skip
     assert binning.num_tiles == num_tiles
     with warp_scope(torch.device(device)) as wdev:
         raster_ops._emit(binning, 0, *raster_ops._sort_buffers(ints, 0, torch.uint32), wdev)

@@ -462,10 +462,12 @@ and the CPU tile layout's line masks (:mod:`~codecsplat_warp.kernels.raster_reac
 
 
 def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, settings: _Settings, splats: torch.Tensor,
-             tile_counts: torch.Tensor, flags: torch.Tensor, visible: _Visible, ranges: torch.Tensor, wdev,
-             zero_culled: bool = False) -> torch.Tensor:  # fmt: skip
+             tile_counts: torch.Tensor, tile_masks: torch.Tensor, flags: torch.Tensor, visible: _Visible,
+             ranges: torch.Tensor, wdev, zero_culled: bool = False) -> torch.Tensor:  # fmt: skip
     """Fill the projected rows ``splats [B*N, 10]`` (rows of culled Gaussians only with ``zero_culled``, else left
-    as they were), ``tile_counts [B*N]``, ``flags`` and the ``visible`` list, and zero the tile ``ranges``
+    as they were), ``tile_counts [B*N]``, ``tile_masks [B*N]`` (int64: which tiles of its rectangle a visible row
+    reaches, :func:`~codecsplat_warp.kernels.raster_tiles.reached_tiles`), ``flags`` and the ``visible`` list, and
+    zero the tile ``ranges``
     ``[T, 2]`` int32 (``[0, 2]`` for none); return radii ``[B*N, 2]`` int32. On the CPU the Gaussians are split
     over the threads, and the ``visible`` list is then rewritten in row order (:func:`_list_visible_in_order`)."""
     dtype = means.dtype
@@ -487,7 +489,7 @@ def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, setting
         int(zero_culled),
         vectors(cameras.leave_out),
     ]
-    outputs = [splats, vectors(radii), tile_counts, flags, visible.count, visible.rows, vectors(ranges)]
+    outputs = [splats, vectors(radii), tile_counts, tile_masks, flags, visible.count, visible.rows, vectors(ranges)]
     kernel = raster_project.projection_kernels(settings.sh_degree >= 0).project
     B = cameras.viewmats.shape[0]
     run_concurrently([
@@ -582,8 +584,8 @@ class _ProjectGaussians(torch.autograd.Function):
         visible = _visible_list(means, B * N)
         with warp_scope(means.device) as wdev:
             _prepare_cameras(viewmats, Ks, _absent(means, 3), cameras, flags, visible, wdev)
-            radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, flags,
-                             visible,
+            radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts,
+                             torch.empty_like(tile_counts), flags, visible,
                              tile_counts.new_empty(0, 2, dtype=torch.int32), wdev, zero_culled=True)  # fmt: skip
         ctx.settings = settings
         ctx.cameras = cameras
@@ -818,16 +820,17 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, l
     colors_or_black = _absent(means, 3) if background is None else background
     ints = means.new_empty(2 * B * N + raster_tiles.NUM_FLAGS, dtype=torch.int64)
     tile_counts, offsets, flags = ints.split_with_sizes((B * N, B * N, raster_tiles.NUM_FLAGS))
+    tile_masks = torch.empty_like(tile_counts)
     splats, cameras = _rows_and_cameras(means, B, leave_out)
     visible = _visible_list(means, B * N)
     # the projection zeroes the ranges
     ranges = tile_counts.new_empty(B * settings.tiles_x * settings.tiles_y, 2, dtype=torch.int32)
     with warp_scope(device) as wdev:
         _prepare_cameras(viewmats, Ks, colors_or_black, cameras, flags, visible, wdev)
-        radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, flags,
-                         visible, ranges, wdev)  # fmt: skip
+        radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, tile_masks,
+                         flags, visible, ranges, wdev)  # fmt: skip
         inclusive_scan(tile_counts, offsets)
-        binning = _Binning(splats, radii, ints, tile_counts, offsets, flags, B, settings)
+        binning = _Binning(splats, radii, ints, tile_counts, tile_masks, offsets, flags, B, settings)
         composite = _composite_launch(device, settings.tile_size, len(ranges))
         shape = (device, B, N, settings.width, settings.height, settings.tile_size)
         count, sorted_ids, outputs, composite_state = _bin_and_composite(
@@ -1015,13 +1018,15 @@ def _check_budget(count: int, key: SortKey, max_bytes: int) -> None:
 
 
 class _Binning(NamedTuple):
-    """What the tile binning of one call reads: projected ``splats [B*N, 10]``, ``radii [B*N, 2]`` int32, and the
-    int64 buffer ``ints = [tile counts (B*N) | inclusive offsets (B*N) | flags]`` with its three parts."""
+    """What the tile binning of one call reads: projected ``splats [B*N, 10]``, ``radii [B*N, 2]`` int32, the
+    int64 buffer ``ints = [tile counts (B*N) | inclusive offsets (B*N) | flags]`` with its three parts, and the
+    projection's ``tile_masks [B*N]`` int64."""
 
     splats: torch.Tensor
     radii: torch.Tensor
     ints: torch.Tensor
     tile_counts: torch.Tensor
+    tile_masks: torch.Tensor
     offsets: torch.Tensor
     flags: torch.Tensor
     num_cameras: int
@@ -1047,6 +1052,7 @@ def _emit(binning: _Binning, capacity: int, keys: torch.Tensor, values: torch.Te
         splats,
         vectors(binning.radii),
         binning.tile_counts,
+        binning.tile_masks,
         binning.offsets,
         binning.flags,
         splats.shape[0] // binning.num_cameras,
