@@ -616,8 +616,9 @@ def published_key_layout(num_tiles: int, nearest_bits: int, farthest_bits: int, 
     [
         (1, 2.0, 4.0, (torch.uint32, 0, 24)),  # one octave: 2^23 + 1 bit patterns
         (256, 1.5, 9.0, (torch.uint32, 1, 24)),  # the RE10K bench: 25 depth bits + 8 tile bits, one dropped
-        (448, 1.5, 9.0, (torch.uint32, 2, 23)),  # the DL3DV bench: 9 tile bits, two dropped
-        (1024, 1.0, 8.0, (torch.int64, 0, 25)),  # 32 bits would drop three: a lossless 64-bit key
+        (448, 1.5, 9.0, (torch.uint32, 2, 23)),  # the DL3DV bench with 16x16 tiles: 9 tile bits, two dropped
+        (1792, 1.5, 9.0, (torch.uint32, 4, 21)),  # the DL3DV bench with 8x8 tiles: 11 tile bits, four dropped
+        (4096, 1.0, 8.0, (torch.int64, 0, 25)),  # 32 bits would drop five: a lossless 64-bit key
         (2**31 - 1, 1.0, 8.0, (torch.int64, 0, 25)),  # the most flat tiles a call may have (31 bits)
     ],
 )
@@ -651,11 +652,13 @@ def scene_at_depths(nearest, farthest, n=40, size=32, seed=4):
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize(
-    "nearest, farthest, want", [(2.0, 2.9, (torch.uint32, 0)), (2.0, 7.0, (torch.uint32, 2)), (1.0, 9.0, (torch.int64, 0))]
-)
+    "nearest, farthest, want",
+    [(2.0, 2.9, (torch.uint32, 0)), (2.0, 7.0, (torch.uint32, 2)), (1.0, 9.0, (torch.uint32, 3)),
+     (1.0, 1000.0, (torch.int64, 0))],
+)  # fmt: skip
 def test_every_sort_key_layout_matches_dense_reference(device, nearest, farthest, want, monkeypatch):
-    """1024 one-pixel tiles (10 key bits) and depth spans of 22, 24 and 25 bits: a lossless 32-bit key, one that
-    drops two depth bits, and a 64-bit key; each renders like the dense reference."""
+    """1024 one-pixel tiles (10 key bits) and depth spans of 22, 24, 25 and 27 bits: a lossless 32-bit key, ones
+    that drop two and three depth bits, and a 64-bit key; each renders like the dense reference."""
     import codecsplat_warp.ops.raster as raster_ops
 
     read = raster_tiles.key_layout
@@ -781,7 +784,7 @@ def scene_with_more_intersections(scene, factor):
     "first, second, tile_size, wrong",
     [
         ("few", "many", 1, "capacity"),  # the guessed capacity is too small (3,981 + 1/8 + 1024 < 10,843)
-        ((2.0, 2.9), (1.0, 9.0), 1, "key dtype"),  # a 32-bit key guessed, a 64-bit key needed (1024 tiles)
+        ((2.0, 2.9), (1.0, 1000.0), 1, "key dtype"),  # a 32-bit key guessed, a 64-bit key needed (1024 tiles)
         ((2.0, 2.01), (2.0, 7.0), 16, "sort bits"),  # a 24-bit sort guessed (2 tile + 17 depth bits), 26 needed
     ],
 )
