@@ -533,6 +533,21 @@ def test_projection_backward_sums_each_gaussians_cameras(device, sh_degree):
         torch.testing.assert_close(total, sum(parts), rtol=1e-10, atol=1e-12, msg=name)
 
 
+def test_radii_changed_in_place_before_the_backward_raise_autograds_error():
+    """The projection backward reads the radii, which the call also returns: changed in place before the backward,
+    they raise autograd's error instead of changing the gradient, for the render and the projection alone."""
+    scene = make_scene(20, 16, 16, cameras=2, sh_degree=2, seed=3)
+    leaves = [t.clone().requires_grad_() for t in scene[:5]]
+    rgb, _, _, meta = rasterize(*leaves, *scene[5:], 16, 16)
+    meta.radii.zero_()
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        rgb.sum().backward()
+    projected = project_gaussians(*leaves, *scene[5:], 16, 16, sh_degree=2)
+    projected.radii.zero_()
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        projected.colors.sum().backward()
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_projection_folds_the_visible_depth_range(device, monkeypatch):
     """The smallest and largest float32 bit pattern of a visible row's depth, as the projection folds them over the

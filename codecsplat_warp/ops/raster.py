@@ -590,18 +590,17 @@ class _ProjectGaussians(torch.autograd.Function):
         ctx.settings = settings
         ctx.cameras = cameras
         ctx.visible = visible
-        ctx.rows = splats, radii
-        ctx.save_for_backward(means, quats, scales, opacities, coeffs)
+        ctx.save_for_backward(means, quats, scales, opacities, coeffs, splats, radii)
         ctx.mark_non_differentiable(radii, flags)
         return splats.view(B, N, raster_row.ROW_WIDTH), radii.view(B, N, 2), flags
 
     @staticmethod
     def backward(ctx, grad_splats, _grad_radii, _grad_flags):
-        means, quats, scales, opacities, coeffs = ctx.saved_tensors
+        means, quats, scales, opacities, coeffs, splats, radii = ctx.saved_tensors
         grad_rows = grad_splats.reshape(-1, raster_row.ROW_WIDTH).contiguous()
         with warp_scope(means.device) as wdev:
             grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs, ctx.cameras, ctx.visible,
-                                      *ctx.rows, ctx.settings, wdev)  # fmt: skip
+                                      splats, radii, ctx.settings, wdev)  # fmt: skip
         return (*grads, None, None, None)
 
 
@@ -849,23 +848,25 @@ class _Rasterize(torch.autograd.Function):
     """(means, quats, scales, opacities, colors, background) -> rgb [B,H,W,3], expected depth [B,H,W,1] or None,
     alpha [B,H,W,1], radii [B,N,2] (not differentiable) and the intersection count (an int).
 
-    The inputs and the background array go through ``save_for_backward``; the forward's own intermediates
-    (:class:`_Saved`) are kept on ``ctx`` directly."""
+    The inputs, the background array and the radii (an output the backward reads: changed in place, it raises
+    autograd's error instead of changing the gradient) go through ``save_for_backward``; the forward's other
+    intermediates (:class:`_Saved`) are kept on ``ctx`` directly."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, colors, background, viewmats, Ks, leave_out,
                 settings: _Settings, max_intersection_bytes: int):  # fmt: skip
         outputs, saved = _render(means, quats, scales, opacities, colors, background, viewmats, Ks, leave_out,
                                  settings, max_intersection_bytes)  # fmt: skip
-        ctx.settings, ctx.colors_shape, ctx.saved = settings, colors.shape, saved._replace(colors_or_black=None)
-        ctx.save_for_backward(means, quats, scales, opacities, colors, saved.colors_or_black)
+        ctx.settings, ctx.colors_shape = settings, colors.shape
+        ctx.saved = saved._replace(colors_or_black=None, radii=None)
+        ctx.save_for_backward(means, quats, scales, opacities, colors, saved.colors_or_black, saved.radii)
         ctx.mark_non_differentiable(outputs[3])
         ctx.set_materialize_grads(False)
         return outputs
 
     @staticmethod
     def backward(ctx, grad_color, grad_depth, grad_alpha, _grad_radii, _grad_count):
-        means, quats, scales, opacities, colors, colors_or_black = ctx.saved_tensors
+        means, quats, scales, opacities, colors, colors_or_black, radii = ctx.saved_tensors
         settings: _Settings = ctx.settings
         saved: _Saved = ctx.saved
         grads = [None] * 5
@@ -877,7 +878,7 @@ class _Rasterize(torch.autograd.Function):
             with warp_scope(means.device) as wdev:
                 grad_rows = saved.composite.backward(saved, colors_or_black, settings, output_grads, wdev)
                 grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs, saved.cameras,
-                                          saved.visible, saved.splats, saved.radii, settings, wdev)  # fmt: skip
+                                          saved.visible, saved.splats, radii, settings, wdev)  # fmt: skip
             grads[4] = grads[4].view(ctx.colors_shape)
         grad_background = None
         if ctx.needs_input_grad[5] and grad_color is not None:
