@@ -243,9 +243,10 @@ def emit_intersections(
     k = int(inclusive_offsets[i] - count)
     end = wp.min(int(inclusive_offsets[i]), capacity)
     rect_width = rect[2] - rect[0]
-    if rect_area(rect) <= MASK_TILES:
+    area = rect_area(rect)
+    if area <= MASK_TILES:
         mask = masks[i]
-        for j in range(rect_area(rect)):
+        for j in range(area):
             if k >= end:
                 return
             if (mask >> wp.int64(j)) & wp.int64(1) != wp.int64(0):

@@ -267,6 +267,7 @@ def lookahead_term(model: CodecSplat, batch: TrainingBatch, lam: float, refined:
     """
     views = batch.context_images.shape[0] // batch.scenes
     epsilon, terms, alignments = config.lookahead_epsilon, [], []
+    rdo = rdo_config(config.inner_preset, steps=1, views=views, cuda_graphs=False, check_every=0)
     for scene, cameras in enumerate(batch.scene_contexts()):
         if scales[scene] is None:
             continue
@@ -277,7 +278,6 @@ def lookahead_term(model: CodecSplat, batch: TrainingBatch, lam: float, refined:
             continue
         direction = [d / size for d in direction]
         latents = [z[rows].float() for z in refined]
-        rdo = rdo_config(config.inner_preset, steps=1, views=views, cuda_graphs=False, check_every=0)
         images = batch.context_images[rows].float()
         target = latent_target(model, images, cameras.to(dtype=torch.float32), lam, latents, rdo)
         seed = (config.seed * 1_000_003 + step) * 101 + scene + 1

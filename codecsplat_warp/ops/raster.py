@@ -467,9 +467,9 @@ def _project(means, quats, scales, opacities, coeffs, cameras: _Cameras, setting
     """Fill the projected rows ``splats [B*N, 10]`` (rows of culled Gaussians only with ``zero_culled``, else left
     as they were), ``tile_counts [B*N]``, ``tile_masks [B*N]`` (int64: which tiles of its rectangle a visible row
     reaches, :func:`~codecsplat_warp.kernels.raster_tiles.reached_tiles`), ``flags`` and the ``visible`` list, and
-    zero the tile ``ranges``
-    ``[T, 2]`` int32 (``[0, 2]`` for none); return radii ``[B*N, 2]`` int32. On the CPU the Gaussians are split
-    over the threads, and the ``visible`` list is then rewritten in row order (:func:`_list_visible_in_order`)."""
+    zero the tile ``ranges`` ``[T, 2]`` int32 (``[0, 2]`` for none); return radii ``[B*N, 2]`` int32. On the CPU
+    the Gaussians are split over the threads, and the ``visible`` list is then rewritten in row order
+    (:func:`_list_visible_in_order`)."""
     dtype = means.dtype
     scalar = warp_dtype(dtype)
     radii = tile_counts.new_empty(splats.shape[0], 2, dtype=torch.int32)
