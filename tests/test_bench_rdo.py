@@ -67,6 +67,31 @@ def test_the_profile_names_every_part(workspace):
     assert [row["ms"] for row in top] == sorted((row["ms"] for row in top), reverse=True)
 
 
+def _event(name: str, device_ms: float, device_type=torch.autograd.DeviceType.CPU, children=()):
+    """A stand-in for a profiler event: its name, device kind, own GPU time (us) and host-side children."""
+    from types import SimpleNamespace
+    return SimpleNamespace(name=name, device_type=device_type, self_device_time_total=1e3 * device_ms,
+                           cpu_children=list(children), cpu_time_total=0.0)
+
+
+def test_the_cuda_profile_counts_a_range_once_and_the_decoder_graphs_as_their_own_part():
+    projection = _event("projection_kernel_launch", 1.5)
+    events = [
+        _event("rasterize", 0.0, children=[projection, _event("composite_launch", 2.5)]), projection,
+        # the same range as an annotation on the GPU's timeline: its span, not more kernels
+        _event("rasterize", 4.2, device_type=torch.autograd.DeviceType.CUDA),
+        _event("_ReplayDecoder", 12.0),
+        _event("autograd::engine::evaluate_function: _ReplayDecoderBackward", 13.0),
+        _event("autograd::engine::evaluate_function: _RasterizeBackward", 9.0),
+        _event("autograd::engine::evaluate_function: AddBackward0", 0.25),
+    ]
+    parts = bench_rdo._step_parts(events, torch.device("cuda"))
+    assert parts["rasterize"] == {"forward": 4.0, "backward": 9.0}
+    assert parts["decoder_graph"] == {"forward": 12.0, "backward": 13.0}
+    assert parts["other"] == {"forward": 0.0, "backward": 0.25}
+    assert sum(part["forward"] + part["backward"] for part in parts.values()) == 38.25
+
+
 @pytest.mark.parametrize("text, match", [("steps=3", "key=value"), ("learning_rate", "key=value"),
                                          ("nonsense=1", "key=value"), ("learning_rate=fast", "not a float")])
 def test_bad_settings_are_named(text, match):

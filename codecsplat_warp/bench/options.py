@@ -144,9 +144,10 @@ def raster_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 RDO_PROFILE_PARTS = ("codec", "depth_head", "refine_post", "reprojection", "gs_head", "map_to_world", "rasterize",
-                     "convolutions", "loss", "perceptual", "optimiser", "other")
+                     "convolutions", "decoder_graph", "loss", "perceptual", "optimiser", "other")
 """The parts of ``bench rdo --profile``'s step: forward ranges of the model (``convolutions``: their backward
-alone), and the backward of each (``other``: the backward nodes of none of them)."""
+alone; ``decoder_graph``: the decoder's CUDA graphs, forward and backward replays, whose kernels the ranges inside
+them do not see), and the backward of each (``other``: the backward nodes of none of them)."""
 
 
 def rdo_arguments(parser: argparse.ArgumentParser) -> None:

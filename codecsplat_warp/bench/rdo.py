@@ -21,10 +21,10 @@ encode seconds.
 reprojection apart), the GS head, the 2D->3D map (unprojection), the rasterizer, the loss and the optimiser, each
 forward and backward, from ``torch.profiler`` on the first sample at the first lambda: CPU time per part on the
 CPU, GPU kernel time per part on CUDA (beside the step's wall time, whose excess over the kernels is launch,
-synchronisation and Python time). The median wall time of ``--profile-steps`` unprofiled steps comes first; a
-second table lists the step's costliest GPU kernels (CUDA; those the decoder's CUDA graphs replay too, which the
-parts miss) or operators (CPU). With ``--refiner`` the median wall time of as many refiner iterations follows, and
-its ratio to the Adam step's.
+synchronisation and Python time). On CUDA the decoder runs as CUDA graphs (the default): its parts then read 0
+and its kernels, forward and backward, are the part ``decoder_graph``. The median wall time of ``--profile-steps``
+unprofiled steps comes first; a second table lists the step's costliest GPU kernels (CUDA) or operators (CPU).
+With ``--refiner`` the median wall time of as many refiner iterations follows, and its ratio to the Adam step's.
 """
 
 from __future__ import annotations
@@ -470,13 +470,21 @@ def _top_work(averages, device: torch.device) -> list[dict]:
 
 
 _BACKWARD_PARTS = (("_RasterizeBackward", "rasterize"), ("_ReprojectAverage", "reprojection"),
-                   ("_Unproject", "map_to_world"), ("Convolution", "convolutions"))
+                   ("_Unproject", "map_to_world"), ("Convolution", "convolutions"),
+                   ("_ReplayDecoderBackward", "decoder_graph"))
 """Backward autograd nodes by name fragment -> part (the rest is "other")."""
+
+_FORWARD_PARTS = {"codec": "codec", "depth_head": "depth_head", "refine_post": "refine_post", "gs_head": "gs_head",
+                  "map_to_world": "map_to_world", "rasterize": "rasterize", "loss": "loss", "perceptual": "perceptual",
+                  "optimiser": "optimiser", "_ReplayDecoder": "decoder_graph"}
+"""Forward ranges and operators by name -> part (``_ReplayDecoder``: the replay of the decoder's forward graph)."""
 
 
 def _step_parts(events, device: torch.device) -> dict[str, dict[str, float]]:
     """{part: {"forward": ms, "backward": ms}} from a profiled step's events: forward by the record_function
-    ranges of the model (nested ranges are subtracted from their parents), backward by autograd node."""
+    ranges of the model (nested ranges are subtracted from their parents) and the decoder graph's replay, backward
+    by autograd node. Only host-side events count: on CUDA a range also shows as an annotation on the GPU's
+    timeline, whose device time is its span, the same kernels again with the gaps between them."""
     def ms(event) -> float:
         if device.type != "cuda":
             return event.cpu_time_total / 1e3
@@ -491,9 +499,10 @@ def _step_parts(events, device: torch.device) -> dict[str, dict[str, float]]:
     parts = {name: {"forward": 0.0, "backward": 0.0} for name in RDO_PROFILE_PARTS}
     for event in events:
         name = event.name
-        if name in ("codec", "depth_head", "refine_post", "gs_head", "map_to_world", "rasterize", "loss",
-                    "perceptual", "optimiser"):
-            parts[name]["forward"] += ms(event)
+        if event.device_type != torch.autograd.DeviceType.CPU:
+            continue
+        if name in _FORWARD_PARTS:
+            parts[_FORWARD_PARTS[name]]["forward"] += ms(event)
         elif name in ("_ReprojectAverage",):
             parts["reprojection"]["forward"] += ms(event)
             parts["refine_post"]["forward"] -= ms(event)
