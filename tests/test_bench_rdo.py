@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -69,7 +70,6 @@ def test_the_profile_names_every_part(workspace):
 
 def _event(name: str, device_ms: float, device_type=torch.autograd.DeviceType.CPU, children=()):
     """A stand-in for a profiler event: its name, device kind, own GPU time (us) and host-side children."""
-    from types import SimpleNamespace
     return SimpleNamespace(name=name, device_type=device_type, self_device_time_total=1e3 * device_ms,
                            cpu_children=list(children), cpu_time_total=0.0)
 
