@@ -127,8 +127,10 @@ def write_pixel(out_color: wp.array2d(dtype=Any), out_depth: wp.array(dtype=Any)
 def pixel_upstream(state: wp.array2d(dtype=Any), grad_color: wp.array2d(dtype=Any), grad_depth: wp.array(dtype=Any),
                    grad_alpha: wp.array(dtype=Any), background: wp.array2d(dtype=Any), pixel: int, camera: int):  # fmt: skip
     """The gradients that reach flat pixel ``pixel`` (of camera ``camera``) for the backward walk over its rows:
-    ``(T_final, vector(d/dr, d/dg, d/db, d/d(sum w z), d/dalpha, background . d/drgb))``, zero for an absent
-    output gradient (arrays as in the backward kernels)."""
+    ``(T_final, vector(d/dr, d/dg, d/db, d/d(sum w z), T_final (d/dalpha - background . d/drgb)))``, zero for an
+    absent output gradient (arrays as in the backward kernels). The last entry is what the final transmittance
+    passes to every row in front of it (times the row's ``1 / (1 - alpha)``): one number, so that the walk keeps
+    fewer registers."""
     zero = state.dtype(0.0)
     one = state.dtype(1.0)
     T_final = state[pixel, 0]
@@ -154,16 +156,15 @@ def pixel_upstream(state: wp.array2d(dtype=Any), grad_color: wp.array2d(dtype=An
             v_alpha_out -= grad_depth[pixel] * ((state[pixel, 1] / denominator) / denominator)
     if background.shape[0] > 0:
         background_dot = background[camera, 0] * v_r + background[camera, 1] * v_g + background[camera, 2] * v_b
-    return T_final, wp.vector(v_r, v_g, v_b, v_depth, v_alpha_out, background_dot)
+    return T_final, wp.vector(v_r, v_g, v_b, v_depth, T_final * (v_alpha_out - background_dot))
 
 
 @wp.func
-def row_gradient(rows: Any, t: int, cx: Any, cy: Any, vis: Any, alpha: Any, T: Any, behind: Any, upstream: Any,
-                 T_final: Any):  # fmt: skip
+def row_gradient(rows: Any, t: int, cx: Any, cy: Any, vis: Any, alpha: Any, T: Any, behind: Any, upstream: Any):
     """The gradient of row ``t`` of ``rows`` at pixel centre (cx, cy), one step of the back-to-front walk: the row
     has ``vis = exp(-power)`` and ``alpha`` there, ``T`` is the transmittance behind it and ``behind`` the
-    ``vector(r, g, b, depth)`` composited behind it (from the pixel's last row on), ``upstream`` and ``T_final``
-    as :func:`pixel_upstream` gives them. Returns ``(gradient of the row's 10 columns, T in front of the row,
+    ``vector(r, g, b, depth)`` composited behind it (from the pixel's last row on), ``upstream`` as
+    :func:`pixel_upstream` gives it. Returns ``(gradient of the row's 10 columns, T in front of the row,
     behind with the row added)``; the geometry and opacity entries are 0 where alpha is clamped at MAX_ALPHA."""
     zero = type(T)(0.0)
     one = type(T)(1.0)
@@ -177,7 +178,7 @@ def row_gradient(rows: Any, t: int, cx: Any, cy: Any, vis: Any, alpha: Any, T: A
     v_alpha = ((c_r * T - behind[0] * ra) * upstream[0] + (c_g * T - behind[1] * ra) * upstream[1]
                + (c_b * T - behind[2] * ra) * upstream[2])  # fmt: skip
     v_alpha += (z * T - behind[3] * ra) * upstream[3]
-    v_alpha += T_final * ra * upstream[4] - T_final * ra * upstream[5]
+    v_alpha += ra * upstream[4]
     g = wp.vector(zero, zero, zero, zero, zero, zero, zero, zero, zero, zero)
     g[RED] = weight * upstream[0]
     g[GREEN] = weight * upstream[1]
@@ -335,13 +336,13 @@ def composite_kernels(batch: int):
         cy = grad_splats.dtype(float(py)) + grad_splats.dtype(0.5)
 
         last = start - 1
-        T_final = one
-        upstream = wp.vector(zero, zero, zero, zero, zero, zero)
+        T = one  # the walk starts behind the last row, at the final transmittance
+        upstream = wp.vector(zero, zero, zero, zero, zero)
         if inside:
             camera = where[1]
             pixel = (camera * height + py) * width + px
             last = last_index[pixel]
-            T_final, upstream = pixel_upstream(state, grad_color, grad_depth, grad_alpha, background, pixel, camera)
+            T, upstream = pixel_upstream(state, grad_color, grad_depth, grad_alpha, background, pixel, camera)
         # Rows after the block's largest last index contribute to no pixel of the block: the block stages none of
         # them, and a warp walks only the rows up to its own largest last index. The lanes of a warp walk the
         # same rows (so that they meet at each row's shuffle reduction); a lane past its own last row, or
@@ -350,7 +351,6 @@ def composite_kernels(batch: int):
         warp_last = warp_max(last)
         columns = wp.where(grad_depth.shape[0] > 0, ROW_WIDTH, DEPTH)  # no depth gradient: the last column stays 0
         leader = lane % WARP_SIZE == 0
-        T = T_final
         behind = wp.vector(zero, zero, zero, zero)
         batch_end = block_last + 1
         while batch_end > start:
@@ -370,7 +370,7 @@ def composite_kernels(batch: int):
                 if lanes > 0:
                     g = wp.vector(zero, zero, zero, zero, zero, zero, zero, zero, zero, zero)
                     if valid:
-                        g, T, behind = row_gradient(rows, t, cx, cy, vis, alpha, T, behind, upstream, T_final)
+                        g, T, behind = row_gradient(rows, t, cx, cy, vis, alpha, T, behind, upstream)
                     adds = valid
                     if lanes > DIRECT_ATOMIC_LANES:  # warp-uniform: sum over the warp, one lane adds
                         for k in range(ROW_WIDTH):

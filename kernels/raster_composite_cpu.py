@@ -305,9 +305,8 @@ def composite_backward_tiles(
             lanes = wp.min(LANES, count - c0)
             # each pixel's walk: T in front of the rows walked, what they composite, the upstream gradients
             T = wp.vector(length=LANES, dtype=grad_intersections.dtype)
-            T_final = wp.vector(length=LANES, dtype=grad_intersections.dtype)
             behind = wp.matrix(shape=(LANES, 4), dtype=grad_intersections.dtype)
-            upstream = wp.matrix(shape=(LANES, 6), dtype=grad_intersections.dtype)
+            upstream = wp.matrix(shape=(LANES, 5), dtype=grad_intersections.dtype)
             last = wp.vector(length=LANES, dtype=wp.int32)
             chunk_last = start - 1
             for k in range(LANES):
@@ -318,7 +317,6 @@ def composite_backward_tiles(
                     chunk_last = wp.max(chunk_last, last[k])
                     pixel_T, pixel_upstream_grads = pixel_upstream(state, grad_color, grad_depth, grad_alpha,
                                                                    background, pixel, camera)
-                    T_final[k] = pixel_T
                     T[k] = pixel_T
                     upstream[k] = pixel_upstream_grads
             for step in range(chunk_last + 1 - start):
@@ -339,7 +337,7 @@ def composite_backward_tiles(
                             alpha = wp.min(grad_intersections.dtype(MAX_ALPHA), splats[row, OPACITY] * vis)
                             if power >= zero and alpha >= grad_intersections.dtype(ALPHA_THRESHOLD):
                                 g, front, composited = row_gradient(splats, row, cx, cy, vis, alpha, T[k], behind[k],
-                                                                    upstream[k], T_final[k])  # fmt: skip
+                                                                    upstream[k])  # fmt: skip
                                 T[k] = front
                                 behind[k] = composited
                                 total = total + g
