@@ -30,7 +30,7 @@ import os
 import sys
 import tempfile
 import threading
-from typing import Hashable, NamedTuple, Sequence
+from typing import Hashable, Iterator, NamedTuple, Sequence
 
 import torch
 import warp as wp
@@ -213,6 +213,27 @@ def freed_memory_wanted() -> bool:
     if text not in ("", "0", "1"):
         raise InputError(f"${FREED_MEMORY_VARIABLE} must be 0 or 1, got {text!r}")
     return text != "0"
+
+
+@contextlib.contextmanager
+def cudnn_autotuned(device: torch.device) -> Iterator[None]:
+    """On a CUDA ``device``, cuDNN's algorithm search on inside the block (``torch.backends.cudnn.benchmark``): the
+    first convolution of each shape times cuDNN's algorithms and keeps the fastest for the process; the flag's
+    former value is given back when the block ends, however it ends. Elsewhere nothing changes.
+
+    For loops that run the same convolutions many times (the RDO decoder's CUDA graphs). The search picks by
+    timing, so two processes may pick differently and round differently; on CUDA a run does not repeat bit for bit
+    anyway (the rasterizer's gradients are atomic sums). A shape that already ran in the process with cuDNN's
+    heuristics keeps the algorithm they chose (torch's plan cache does not key on the flag)."""
+    if device.type != "cuda":
+        yield
+        return
+    searching = torch.backends.cudnn.benchmark
+    torch.backends.cudnn.benchmark = True
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.benchmark = searching
 
 
 def _glibc():

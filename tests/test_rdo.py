@@ -273,6 +273,20 @@ def test_a_cpu_run_has_the_heads_channels_last_and_gives_their_weights_back():
     assert rdo.heads_channels_last(model, torch.device("cuda")) == [], "nothing changes on CUDA"
 
 
+@pytest.mark.parametrize("before", [False, True])
+def test_a_cuda_run_searches_cudnns_algorithms_and_gives_the_flag_back(before, monkeypatch):
+    monkeypatch.setattr(torch.backends.cudnn, "benchmark", before)
+    model = tiny_coding_model(0)
+    inside = []
+    with pytest.raises(KeyboardInterrupt), rdo.decoder_fixed(model, torch.device("cuda")):
+        inside.append(torch.backends.cudnn.benchmark)
+        raise KeyboardInterrupt
+    assert inside == [True], "cuDNN's algorithm search is on during a CUDA run"
+    assert torch.backends.cudnn.benchmark is before, "and the flag is given back, however the run ends"
+    with rdo.decoder_fixed(model, torch.device("cpu")):
+        assert torch.backends.cudnn.benchmark is before, "the CPU leaves cuDNN's flag alone"
+
+
 def _start(model, images, cameras):
     with torch.no_grad():
         return model.codec.compress(model(images, cameras)["F_c"], LAM, reconstruct=True)
