@@ -1,8 +1,8 @@
 """CUDA warp-level helpers for Warp kernels (``wp.func_native`` snippets), each also correct on the CPU.
 
 Warp's CPU backend runs a tiled launch with one lane per block and a plain launch one thread at a time, so on
-the CPU every helper reduces over a single lane: :func:`warp_sum` and :func:`warp_max` return their argument,
-:func:`warp_count` whether it is non-zero, :func:`warp_append` is an atomic increment. :func:`atomic_increment`
+the CPU every helper reduces over a single lane: :func:`warp_sum_row_add` adds its values, :func:`warp_max` returns
+its argument, :func:`warp_count` whether it is non-zero, :func:`warp_append` is an atomic increment. :func:`atomic_increment`
 counts atomically on both (Warp's own CPU atomics are plain adds, wrong for launches that several CPU threads run at
 once). On CUDA they act on the lanes of the calling thread's 32-thread warp (a partial last warp of a block
 included).
@@ -12,36 +12,77 @@ from __future__ import annotations
 
 import warp as wp
 
-WARP_SIZE = wp.constant(32)
-"""CUDA threads per warp: the lanes that :func:`warp_sum`, :func:`warp_max` and :func:`warp_count` reduce over."""
-
 _WARP_MASK = """
 const unsigned warp_lane = threadIdx.x & 31u;
 const unsigned warp_lanes = min(32u, blockDim.x - (threadIdx.x & ~31u));
 const unsigned warp_mask = warp_lanes == 32u ? 0xffffffffu : ((1u << warp_lanes) - 1u);
 """
 
-_WARP_SUM = f"""
-auto total = value;
+_WARP_SUM_ROW_ADD = """
 #if defined(__CUDA_ARCH__)
-{_WARP_MASK}
-for (unsigned offset = 16u; offset > 0u; offset >>= 1u) {{
-    auto other = __shfl_down_sync(warp_mask, total, offset);
-    if (warp_lane + offset < warp_lanes) total += other;
-}}
+MASK
+if (warp_lanes == 32u) {
+    // reduce-scatter over the lane bits 4..0: 10 -> 5 -> 3 -> 2 -> 1 -> 1 sums per lane (zero-padded halves),
+    // 12 shuffles instead of 50; then the lane pair that holds a column's total adds it, one atomic per column
+    const bool b4 = (warp_lane & 16u) != 0u, b3 = (warp_lane & 8u) != 0u;
+    const bool b2 = (warp_lane & 4u) != 0u, b1 = (warp_lane & 2u) != 0u;
+    SCALAR a[5];
+    #pragma unroll
+    for (int k = 0; k < 5; ++k) {
+        const SCALAR low = values.c[k], high = values.c[k + 5];
+        a[k] = (b4 ? high : low) + __shfl_xor_sync(0xffffffffu, b4 ? low : high, 16);
+    }
+    SCALAR b[3];
+    #pragma unroll
+    for (int k = 0; k < 3; ++k) {
+        const SCALAR low = a[k], high = k + 3 < 5 ? a[k + 3] : SCALAR(0);
+        b[k] = (b3 ? high : low) + __shfl_xor_sync(0xffffffffu, b3 ? low : high, 8);
+    }
+    SCALAR c[2];
+    #pragma unroll
+    for (int k = 0; k < 2; ++k) {
+        const SCALAR low = b[k], high = k + 2 < 3 ? b[k + 2] : SCALAR(0);
+        c[k] = (b2 ? high : low) + __shfl_xor_sync(0xffffffffu, b2 ? low : high, 4);
+    }
+    SCALAR total = (b1 ? c[1] : c[0]) + __shfl_xor_sync(0xffffffffu, b1 ? c[0] : c[1], 2);
+    total += __shfl_xor_sync(0xffffffffu, total, 1);
+    const int of_b = (b2 ? 2 : 0) + (b1 ? 1 : 0);  // the entry of b, of a and the column this lane's total is
+    const int of_a = (b3 ? 3 : 0) + of_b;
+    const int column = (b4 ? 5 : 0) + of_a;
+    if ((warp_lane & 1u) == 0u && of_b < 3 && of_a < 5 && column < columns)
+        wp::atomic_add(out, row, column, total);
+} else {
+    #pragma unroll
+    for (int k = 0; k < 10; ++k) {
+        SCALAR total = values.c[k];
+        for (unsigned offset = 16u; offset > 0u; offset >>= 1u) {
+            const SCALAR other = __shfl_down_sync(warp_mask, total, offset);
+            if (warp_lane + offset < warp_lanes) total += other;
+        }
+        if (warp_lane == 0u && k < columns) wp::atomic_add(out, row, k, total);
+    }
+}
+#else
+for (int k = 0; k < 10 && k < columns; ++k) wp::atomic_add(out, row, k, values.c[k]);
 #endif
-return total;
-"""
+""".replace("MASK", _WARP_MASK)
 
-@wp.func_native(_WARP_SUM)
-def warp_sum(value: wp.float32) -> wp.float32:
-    """Sum of ``value`` over the lanes of this thread's CUDA warp, valid in the warp's first lane; the value itself
-    on the CPU (one lane per block). Every lane of the warp must call it (no divergence)."""
+
+@wp.func_native(_WARP_SUM_ROW_ADD.replace("SCALAR", "wp::float32"))
+def warp_sum_row_add(out: wp.array2d(dtype=wp.float32), row: int, values: wp.types.vector(10, wp.float32),
+                     columns: int):
+    """Add the sums over this thread's CUDA warp of ``values`` (one 10-vector per lane: a projected row's
+    gradient) to ``out[row, :columns]``, atomically. On a whole warp a reduce-scatter (lane pairs exchange half
+    of what they hold: 12 shuffles, where ten tree reductions take 50) leaves each column's total on a lane
+    of its own, and those lanes add at once: one atomic instruction for the warp instead of ten from one lane. A
+    partial warp sums each column to its first lane, which adds them. On the CPU (one lane) ``values`` is added
+    as it is. Every lane of the warp must call it with the same ``row`` (no divergence)."""
     ...
 
 
-@wp.func_native(_WARP_SUM)
-def warp_sum(value: wp.float64) -> wp.float64:  # noqa: F811 - the float64 overload
+@wp.func_native(_WARP_SUM_ROW_ADD.replace("SCALAR", "wp::float64"))
+def warp_sum_row_add(out: wp.array2d(dtype=wp.float64), row: int,  # noqa: F811 - the float64 overload
+                     values: wp.types.vector(10, wp.float64), columns: int):
     ...
 
 

@@ -8,11 +8,10 @@ block stages ``batch`` projected rows of its tile's depth-sorted list in shared 
 ids, then ``tile_load_indexed`` of the rows) and each thread walks the staged rows for its pixel. ``batch``
 is a compile-time constant of :func:`composite_kernels` (``block_dim`` on CUDA, small on the CPU where every
 one-pixel block stages its own copy). In the backward the lanes of a CUDA warp walk the rows in step. A row
-that more than :data:`DIRECT_ATOMIC_LANES` lanes of the warp reach has its gradient summed over the warp with
-shuffles (:func:`~codecsplat_warp.kernels.lanes.warp_sum`, a ``wp.func_native`` snippet that is the identity on the
-CPU's one-lane blocks) before one lane adds it to the row with atomics, as gsplat does: ten atomics per row and warp
-instead of up to 320. A row that fewer lanes reach (the common case for the model's pixel-sized Gaussians) gets
-their atomics directly, without the ten reductions.
+that more than :data:`DIRECT_ATOMIC_LANES` lanes of the warp reach has its gradient summed over the warp
+(:func:`~codecsplat_warp.kernels.lanes.warp_sum_row_add`, a ``wp.func_native`` snippet: a reduce-scatter of the ten
+columns over the lanes, after which ten lanes add a column's total each, at once) instead of up to 320 atomics. A
+row that fewer lanes reach (the common case for the model's pixel-sized Gaussians) gets their atomics directly.
 
 Constants are gsplat's: ``alpha = min(0.999, opacity * exp(-power))``; rows with ``power < 0`` or
 ``alpha < 1/255`` (:data:`.raster_row.ALPHA_THRESHOLD`) are skipped; a pixel stops (exclusively) at the first row whose
@@ -36,7 +35,7 @@ from typing import Any
 
 import warp as wp
 
-from .lanes import WARP_SIZE, warp_count, warp_max, warp_sum
+from .lanes import warp_count, warp_max, warp_sum_row_add
 from .raster_row import (
     ALPHA_THRESHOLD, BLUE, CONIC_A, CONIC_B, CONIC_C, DEPTH, GREEN, MAX_ALPHA, MEAN_X, MEAN_Y, OPACITY, RED,
     ROW_WIDTH,
@@ -200,7 +199,7 @@ def row_gradient(rows: Any, t: int, cx: Any, cy: Any, vis: Any, alpha: Any, T: A
 
 DIRECT_ATOMIC_LANES = 4
 """In the compositing backward, a row that this many lanes of a warp or fewer reach gets their atomic adds
-directly; more lanes sum over the warp first (ten shuffle reductions) and one lane adds."""
+directly; more lanes sum over the warp first and add one atomic per column (:func:`.lanes.warp_sum_row_add`)."""
 
 FORWARD_BLOCKS_PER_SM = 4
 BACKWARD_BLOCKS_PER_SM = 4
@@ -350,7 +349,6 @@ def composite_kernels(batch: int):
         block_last = wp.tile_max(wp.tile(last))[0]
         warp_last = warp_max(last)
         columns = wp.where(grad_depth.shape[0] > 0, ROW_WIDTH, DEPTH)  # no depth gradient: the last column stays 0
-        leader = lane % WARP_SIZE == 0
         behind = wp.vector(zero, zero, zero, zero)
         batch_end = block_last + 1
         while batch_end > start:
@@ -371,12 +369,9 @@ def composite_kernels(batch: int):
                     g = wp.vector(zero, zero, zero, zero, zero, zero, zero, zero, zero, zero)
                     if valid:
                         g, T, behind = row_gradient(rows, t, cx, cy, vis, alpha, T, behind, upstream)
-                    adds = valid
-                    if lanes > DIRECT_ATOMIC_LANES:  # warp-uniform: sum over the warp, one lane adds
-                        for k in range(ROW_WIDTH):
-                            g[k] = warp_sum(g[k])
-                        adds = leader
-                    if adds:
+                    if lanes > DIRECT_ATOMIC_LANES:  # warp-uniform: sum over the warp, a lane per column adds
+                        warp_sum_row_add(grad_splats, ids[t], g, columns)
+                    elif valid:
                         row = ids[t]
                         for k in range(ROW_WIDTH):
                             if k < columns:
