@@ -38,6 +38,7 @@ import time
 
 import torch
 
+from ..device import cudnn_autotuned
 from ..errors import DataError, InputError
 from ..eval.protocols import (PROTOCOLS, Sample, eager_plan, find_scenes, folder_index_plan, nearest_context_images,
                               scene_samples, select_scenes)
@@ -393,7 +394,9 @@ def profile_step(model, sample: Sample, lam: float, settings: dict, steps: int, 
     sample = sample.to(device)
     # the run below: 3 warm-up, timed, 1 profiled
     config = rdo_config("fast", steps + 4, None, 0, sample.context_cameras.num_views, **settings)
-    with torch.no_grad():
+    # the model's forward runs the decoder heads, which an encode first runs inside the optimisation: the same
+    # cuDNN algorithm search (torch keeps the first algorithm a convolution of a shape got, searched or not)
+    with torch.no_grad(), cudnn_autotuned(device):
         feature = model(sample.context_images, sample.context_cameras)["F_c"]
         start = model.codec.compress(feature, lam, reconstruct=True)
     target = rdo_target(model, sample.context_images, sample.context_cameras, lam, start, config, perceptual)
