@@ -2,10 +2,10 @@
 
 Warp's CPU backend runs a tiled launch with one lane per block and a plain launch one thread at a time, so on
 the CPU every helper reduces over a single lane: :func:`warp_sum_row_add` adds its values, :func:`warp_max` returns
-its argument, :func:`warp_count` whether it is non-zero, :func:`warp_append` is an atomic increment. :func:`atomic_increment`
-counts atomically on both (Warp's own CPU atomics are plain adds, wrong for launches that several CPU threads run at
-once). On CUDA they act on the lanes of the calling thread's 32-thread warp (a partial last warp of a block
-included).
+its argument, :func:`warp_count` whether it is non-zero, :func:`warp_append` is an atomic increment.
+:func:`atomic_increment` counts atomically on both (Warp's own CPU atomics are plain adds, wrong for launches that
+several CPU threads run at once). On CUDA they act on the lanes of the calling thread's 32-thread warp (a partial
+last warp of a block included).
 """
 
 from __future__ import annotations

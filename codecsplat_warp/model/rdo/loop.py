@@ -229,7 +229,7 @@ def optimise_latents(model, images: torch.Tensor, cameras: Cameras, lam: float, 
 def decoder_fixed(model, device: torch.device) -> Iterator[None]:
     """The model set up for an optimisation through it on ``device``: every parameter frozen (no weight gradients,
     :func:`parameters_frozen`), on CUDA cuDNN's algorithm search on (:func:`~codecsplat_warp.device.cudnn_autotuned`:
-    an 8-view step on an H200 47.2 -> 44.0 ms) and on the CPU the decoder heads channels-last
+    an 8-view step on an H200 47.2-47.5 -> 45.0-45.2 ms) and on the CPU the decoder heads channels-last
     (:func:`heads_channels_last`); its weights, training mode and cuDNN's flag given back when the block ends,
     however it ends."""
     was_training = model.training
