@@ -633,7 +633,8 @@ def published_key_layout(num_tiles: int, nearest_bits: int, farthest_bits: int, 
         (256, 1.5, 9.0, (torch.uint32, 1, 24)),  # the RE10K bench: 25 depth bits + 8 tile bits, one dropped
         (448, 1.5, 9.0, (torch.uint32, 2, 23)),  # the DL3DV bench with 16x16 tiles: 9 tile bits, two dropped
         (1792, 1.5, 9.0, (torch.uint32, 4, 21)),  # the DL3DV bench with 8x8 tiles: 11 tile bits, four dropped
-        (4096, 1.0, 8.0, (torch.int64, 0, 25)),  # 32 bits would drop five: a lossless 64-bit key
+        (4096, 1.0, 8.0, (torch.uint32, 5, 20)),  # 12 tile bits: five dropped
+        (2**16, 1.0, 8.0, (torch.int64, 0, 25)),  # 32 bits would drop nine: a lossless 64-bit key
         (2**31 - 1, 1.0, 8.0, (torch.int64, 0, 25)),  # the most flat tiles a call may have (31 bits)
     ],
 )
@@ -667,13 +668,14 @@ def scene_at_depths(nearest, farthest, n=40, size=32, seed=4):
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize(
-    "nearest, farthest, want",
-    [(2.0, 2.9, (torch.uint32, 0)), (2.0, 7.0, (torch.uint32, 2)), (1.0, 9.0, (torch.uint32, 3)),
-     (1.0, 1000.0, (torch.int64, 0))],
+    "nearest, farthest, size, want",
+    [(2.0, 2.9, 32, (torch.uint32, 0)), (2.0, 7.0, 32, (torch.uint32, 2)), (1.0, 9.0, 32, (torch.uint32, 3)),
+     (1.0, 1000.0, 32, (torch.uint32, 5)), (0.02, 5e9, 64, (torch.int64, 0))],
 )  # fmt: skip
-def test_every_sort_key_layout_matches_dense_reference(device, nearest, farthest, want, monkeypatch):
+def test_every_sort_key_layout_matches_dense_reference(device, nearest, farthest, size, want, monkeypatch):
     """1024 one-pixel tiles (10 key bits) and depth spans of 22, 24, 25 and 27 bits: a lossless 32-bit key, ones
-    that drop two and three depth bits, and a 64-bit key; each renders like the dense reference."""
+    that drop two, three and five depth bits; 4096 tiles (12 bits) and a 29-bit span: a 64-bit key. Each renders
+    like the dense reference."""
     import codecsplat_warp.ops.raster as raster_ops
 
     read = raster_tiles.key_layout
@@ -684,8 +686,8 @@ def test_every_sort_key_layout_matches_dense_reference(device, nearest, farthest
         return read(values)
 
     monkeypatch.setattr(raster_tiles, "key_layout", spy)
-    scene = [t.to(device) for t in scene_at_depths(nearest, farthest)]
-    ours, ref, grads_ours, grads_ref = render_both(scene, 32, 32, tile_size=1)
+    scene = [t.to(device) for t in scene_at_depths(nearest, farthest, size=size)]
+    ours, ref, grads_ours, grads_ref = render_both(scene, size, size, tile_size=1)
     assert [(key.dtype, key.depth_shift) for key in layouts] == [want]
     assert_matches_reference(ours, ref, grads_ours, grads_ref, image_atol=1e-10, grad_rtol=1e-8)
 
@@ -796,30 +798,30 @@ def scene_with_more_intersections(scene, factor):
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize(
-    "first, second, tile_size, wrong",
+    "first, second, size, tile_size, wrong",
     [
-        ("few", "many", 1, "capacity"),  # the guessed capacity is too small (3,981 + 1/8 + 1024 < 10,843)
-        ((2.0, 2.9), (1.0, 1000.0), 1, "key dtype"),  # a 32-bit key guessed, a 64-bit key needed (1024 tiles)
-        ((2.0, 2.01), (2.0, 7.0), 16, "sort bits"),  # a 24-bit sort guessed (2 tile + 17 depth bits), 26 needed
+        ("few", "many", 32, 1, "capacity"),  # the guessed capacity is too small (3,981 + 1/8 + 1024 < 10,843)
+        ((2.0, 2.9), (0.02, 5e9), 64, 1, "key dtype"),  # a 32-bit key guessed, a 64-bit key needed (4096 tiles)
+        ((2.0, 2.01), (2.0, 7.0), 32, 16, "sort bits"),  # a 24-bit sort guessed (2 tile + 17 depth bits), 26 needed
     ],
 )
-def test_a_wrong_guess_bins_again_exactly(device, first, second, tile_size, wrong, speculating):
+def test_a_wrong_guess_bins_again_exactly(device, first, second, size, tile_size, wrong, speculating):
     """A call whose guess from the call before does not hold its intersections emits, sorts and composites them
     again into exact buffers (over the first compositing's outputs), and renders as without speculation."""
     import codecsplat_warp.ops.raster as raster_ops
 
     def scene_for(kind):
         if kind in ("few", "many"):
-            scene = make_scene(40, 32, 32, seed=9)
+            scene = make_scene(40, size, size, seed=9)
             return scene_with_more_intersections(scene, 1.0 if kind == "few" else 4.0)
-        return scene_at_depths(*kind)
+        return scene_at_depths(*kind, size=size)
 
     scenes = [[t.to(device) for t in scene_for(kind)] for kind in (first, second)]
-    exact, count = exact_render(scenes[1], 32, tile_size)
-    render_with_gradients(scenes[0], 32, tile_size)
+    exact, count = exact_render(scenes[1], size, tile_size)
+    render_with_gradients(scenes[0], size, tile_size)
     guess = next(iter(raster_ops._speculations.values()))
     speculating.clear()
-    assert_same_render(render_with_gradients(scenes[1], 32, tile_size)[0], exact)
+    assert_same_render(render_with_gradients(scenes[1], size, tile_size)[0], exact)
     assert speculating == [guess.capacity, count]
     after = next(iter(raster_ops._speculations.values()))
     if wrong == "capacity":
