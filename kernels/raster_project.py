@@ -19,7 +19,8 @@ integer pixel radii from the opacity-aware extent ``min(3.33, sqrt(2 ln(255 opac
 each row reaches (:mod:`.raster_reach`), input validation flags and the list of visible rows. Its twin
 ``project_gaussians_differentiable`` recomputes only the differentiable row of the listed visible Gaussians and is
 launched with ``adjoint=True`` for the backward pass (straight-line code, so Warp's automatic adjoint is exact; a
-float64 gradcheck covers it); with SH colours :func:`sh_coefficient_gradients` gives the coefficients' gradient.
+float64 gradcheck covers it); with SH colours :func:`sh_color_gradients` gives the colours' gradient (of the
+coefficients, and of the means through the view direction), one thread per Gaussian.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from .raster_reach import row_reach
 from .raster_tiles import (
     DEPTH_RANGE, DEPTH_RANGE_LINES, NO_DEPTH_BITS, NUM_FLAGS, depth_bits, reached_tiles, tile_rect,
 )  # fmt: skip
-from .sh import MAX_COEFFICIENTS, sh_basis, sh_color, sh_count
+from .sh import MAX_COEFFICIENTS, sh_basis, sh_color, sh_count, sh_direction_gradient
 
 MAX_EXTENT_SIGMAS = 3.33
 """Largest bounding extent in standard deviations (gsplat's default)."""
@@ -322,6 +323,15 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
             return sh_row_color(coeffs, n, sh_degree, mean, viewmat)
         return coeffs[n, 0]
 
+    @wp.func
+    def differentiated_color(coeffs: wp.array2d(dtype=Any), n: int, like: Any):
+        """The colour the differentiable twin writes: the given colour (``coeffs[n, 0]``), or with SH colours zero
+        (``like`` gives the scalar type), whose gradient :func:`sh_color_gradients` takes instead."""
+        if wp.static(spherical_harmonics):
+            zero = type(like)(0.0)
+            return wp.vector(zero, zero, zero)
+        return coeffs[n, 0]
+
     @wp.kernel(enable_backward=False, module="unique")
     def project_gaussians(
         means: wp.array(dtype=Any),
@@ -475,11 +485,14 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         ``t < visible_count[0]`` takes row ``visible_rows[t]``, the others return at once).
 
         Launch with ``adjoint=True``, ``adj_outputs`` = gradient of the rows, to get gradients of means,
-        quats, scales, opacities and coeffs (accumulated over cameras). Culled rows get no gradient. Walking the
-        list instead of all ``(b, n)`` keeps a warp from running the adjoint because one of its 32 Gaussians is
-        visible: with 90 % of the Gaussians off-screen nearly every warp would. Give SH coefficients no adjoint
-        array (the gradient through the view direction still reaches the means) and take their gradient from
-        :func:`sh_coefficient_gradients`: here it would cost 3 (degree + 1)^2 atomic adds per row.
+        quats, scales, opacities and RGB colours (accumulated over cameras). Culled rows get no gradient. Walking
+        the list instead of all ``(b, n)`` keeps a warp from running the adjoint because one of its 32 Gaussians is
+        visible: with 90 % of the Gaussians off-screen nearly every warp would. With SH colours the twin leaves
+        the colour out (it writes zero), and :func:`sh_color_gradients` gives the coefficients' gradient and the
+        means' through the view direction, one thread per Gaussian: here the coefficients would cost 3 (degree
+        + 1)^2 atomic adds per row, and their uncoalesced loads and the basis's registers, spilled, took half of
+        an 8-view RDO step's projection adjoint (Nsight Compute on an H200: 85 % of its L2 sectors excessive,
+        84 M spill requests).
         """
         t = wp.tid()
         if wp.int64(t) >= visible_count[0]:
@@ -499,15 +512,16 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         effective_opacity = opacity
         if antialiased != 0:
             effective_opacity = opacity * blur_compensation(wp.determinant(cov2d), det)
-        color = row_color(coeffs, n, sh_degree, mean, viewmat)
+        color = differentiated_color(coeffs, n, opacity)
         write_row(splats, i, projected_mean(p, K), conic, effective_opacity, color, p[2])
 
     return ProjectionKernels(project_gaussians, project_gaussians_differentiable)
 
 
 @wp.kernel(enable_backward=False, module="unique")
-def sh_coefficient_gradients(
+def sh_color_gradients(
     means: wp.array(dtype=Any),
+    coeffs: wp.array2d(dtype=Any),
     viewmats: wp.array(dtype=Any),
     origin: wp.array(dtype=Any),
     radii: wp.array(dtype=wp.vec2i),
@@ -516,28 +530,38 @@ def sh_coefficient_gradients(
     sh_degree: int,
     first_gaussian: int,
     grad_coeffs: wp.array2d(dtype=Any),
+    grad_means: wp.array(dtype=Any),
 ):
-    """Write the gradient of the SH coefficients of Gaussian ``first_gaussian + t`` (thread ``t``, ``dim=count``),
-    summed over the cameras that see it, into ``grad_coeffs``.
+    """Write the gradient of the SH coefficients of Gaussian ``n = first_gaussian + t`` (thread ``t``,
+    ``dim=count``) into ``grad_coeffs``, and add the colours' gradient through the view direction to
+    ``grad_means[n]``, both summed over the cameras that see it.
 
-    A row's colour is ``max(sum_k basis_k(d) c_k + 0.5, 0)`` per channel, linear in the coefficients: where the
-    projected colour is above 0, channel ``j`` of coefficient ``k`` gets ``basis_k(d) * grad[j]``, ``d`` the
-    direction from the camera centre to the Gaussian. The thread sums its cameras' terms in registers, in camera
-    order, and writes each coefficient once (no atomics).
+    A row's colour is ``max(sum_k basis_k(d) c_k + 0.5, 0)`` per channel, ``d`` the direction from the camera
+    centre to the Gaussian. Where the projected colour is above 0, channel ``j`` of coefficient ``k`` gets
+    ``basis_k(d) * grad[j]`` (the colour is linear in the coefficients), and the mean gets the gradient of
+    ``sum_k (c_k . grad) basis_k(d)`` with respect to ``d`` (:func:`~.sh.sh_direction_gradient`). The thread loads
+    the coefficients once, sums its cameras' terms in registers, in camera order, writes each coefficient once and
+    adds to its own mean (no atomics; launched before the projection adjoint, whose atomic adds follow).
 
     Args:
-        means: ``[N]`` 3-vectors; viewmats: ``[B]`` 4x4 and origin: ``[3]`` from :func:`prepare_cameras`.
+        means: ``[N]`` 3-vectors; coeffs: ``[N, K]`` RGB vectors, ``K >= (sh_degree + 1)^2``.
+        viewmats: ``[B]`` 4x4 and origin: ``[3]`` from :func:`prepare_cameras`.
         radii: ``[B*N]`` pixel radii from :func:`project_gaussians` (0: culled, no gradient).
         splats: ``[B*N, 10]`` the projected rows; grad_rows: ``[B*N, 10]`` their gradient.
-        sh_degree: 0..3; grad_coeffs: ``[N, K]`` RGB vectors, ``K >= (sh_degree + 1)^2``; the coefficients above
-            the degree are left as they are.
+        sh_degree: 0..3; grad_coeffs: ``[N, K]`` RGB vectors (the coefficients above the degree are left as they
+            are); grad_means: ``[N]`` 3-vectors, added to.
     """
     n = first_gaussian + wp.tid()
     num = means.shape[0]
     mean = means[n] - wp.vector(origin[0], origin[1], origin[2])
     count = sh_count(sh_degree)
     zero = splats.dtype(0.0)
+    own = wp.matrix(shape=(MAX_COEFFICIENTS, 3), dtype=splats.dtype)
+    for k in range(wp.static(MAX_COEFFICIENTS)):
+        if k < count:
+            own[k] = coeffs[n, k]
     total = wp.matrix(shape=(MAX_COEFFICIENTS, 3), dtype=splats.dtype)
+    grad_mean = wp.vector(zero, zero, zero)
     for b in range(viewmats.shape[0]):
         i = b * num + n
         radius = radii[i]
@@ -547,10 +571,14 @@ def sh_coefficient_gradients(
                 wp.where(splats[i, GREEN] > zero, grad_rows[i, GREEN], zero),
                 wp.where(splats[i, BLUE] > zero, grad_rows[i, BLUE], zero),
             )
-            basis = sh_basis(mean - camera_center(viewmats[b]), sh_degree)
+            direction = mean - camera_center(viewmats[b])
+            basis = sh_basis(direction, sh_degree)
+            weights = own * g
             for k in range(wp.static(MAX_COEFFICIENTS)):
                 if k < count:
                     total[k] = total[k] + g * basis[k]
+            grad_mean = grad_mean + sh_direction_gradient(direction, sh_degree, weights)
     for k in range(wp.static(MAX_COEFFICIENTS)):
         if k < count:
             grad_coeffs[n, k] = total[k]
+    grad_means[n] = grad_means[n] + grad_mean

@@ -99,3 +99,50 @@ def sh_color(coeffs: wp.array2d(dtype=Any), n: int, degree: int, direction: Any)
         if k < count:
             color = color + coeffs[n, k] * basis[k]
     return color
+
+
+@wp.func
+def sh_direction_gradient(direction: Any, degree: int, weights: Any):
+    """Gradient with respect to ``direction`` (need not be normalised, must be non-zero) of
+    ``sum_k weights[k] * basis_k(direction)`` over the bands up to ``degree`` (``weights``: a
+    :data:`MAX_COEFFICIENTS` vector of the direction's scalar type; the constant band has no gradient).
+
+    Written out by hand: the basis is a polynomial in the normalised direction ``d``, whose gradient ``g`` this
+    sums; the normalisation then contributes ``(g - d (d . g)) / |direction|``."""
+    length = wp.length(direction)
+    d = direction / length
+    x = d[0]
+    y = d[1]
+    z = d[2]
+    zero = type(x)(0.0)
+    two = type(x)(2.0)
+    three = type(x)(3.0)
+    gx = zero
+    gy = zero
+    gz = zero
+    if degree >= 1:
+        a1 = type(x)(-0.48860251190292)
+        gx = a1 * weights[3]
+        gy = a1 * weights[1]
+        gz = -a1 * weights[2]
+    if degree >= 2:
+        a2 = two * type(x)(0.5462742152960395)
+        k5 = type(x)(-1.092548430592079)
+        gx = gx + a2 * (y * weights[4] + x * weights[8]) + k5 * z * weights[7]
+        gy = gy + a2 * (x * weights[4] - y * weights[8]) + k5 * z * weights[5]
+        gz = gz + k5 * (y * weights[5] + x * weights[7]) + two * type(x)(0.9461746957575601) * z * weights[6]
+    if degree >= 3:
+        a3 = type(x)(-0.5900435899266435)
+        k10 = type(x)(1.445305721320277)
+        k11 = type(x)(-2.285228997322329)
+        c3 = k11 * z * z + type(x)(0.4570457994644658)
+        c1 = x * x - y * y
+        gx = gx + a3 * (two * three * x * y * weights[9] + three * c1 * weights[15]) + c3 * weights[13]
+        gx = gx + two * k10 * z * (y * weights[10] + x * weights[14])
+        gy = gy + a3 * (three * c1 * weights[9] - two * three * x * y * weights[15]) + c3 * weights[11]
+        gy = gy + two * k10 * z * (x * weights[10] - y * weights[14])
+        gz = gz + k10 * (two * x * y * weights[10] + c1 * weights[14])
+        gz = gz + two * k11 * z * (y * weights[11] + x * weights[13])
+        gz = gz + (three * type(x)(1.865881662950577) * z * z - type(x)(1.119528997770346)) * weights[12]
+    g = wp.vector(gx, gy, gz)
+    return (g - d * wp.dot(d, g)) / length

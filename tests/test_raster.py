@@ -131,7 +131,7 @@ def test_tiles_larger_than_16_match_16_with_gradients(device, tile_size):
     "argument, sh_degree, mode",
     [("means", None, "classic"), ("quats", None, "antialiased"), ("scales", None, "antialiased"),
      ("opacities", None, "classic"), ("colors", None, "classic"), ("colors", 1, "classic"),
-     ("colors", 3, "antialiased")],
+     ("colors", 3, "antialiased"), ("means", 2, "classic"), ("means", 3, "antialiased")],
 )  # fmt: skip
 def test_gradcheck_float64(argument, sh_degree, mode):
     scene = make_scene(20, 16, 16, sh_degree=sh_degree, seed=3)

@@ -516,7 +516,7 @@ def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, camera
     """Gradients of means ``[N,3]``, quats ``[N,4]``, scales ``[N,3]``, opacities ``[N]`` and coeffs ``[N,K,3]``
     from the gradient of the projected rows ``[B*N, 10]`` (views of one zero-initialised buffer), given the
     forward's rows ``splats [B*N, 10]`` and ``radii [B*N, 2]``; one thread per row of the ``visible`` list, and with
-    SH colours one per Gaussian for the coefficients (:func:`_sh_coefficient_gradients`).
+    SH colours first one per Gaussian for the colours' part (:func:`_sh_color_gradients`).
 
     On the CPU (where the list is in row order) the rows are taken camera after camera, each camera's split over
     the threads: a Gaussian has one row per camera, so no two threads add to its gradient at once (Warp's CPU
@@ -529,7 +529,8 @@ def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, camera
     zero = _ZERO[dtype]
     spherical_harmonics = settings.sh_degree >= 0
     if spherical_harmonics:
-        _sh_coefficient_gradients(grad_rows, means, cameras, splats, radii, settings.sh_degree, grads[4], wdev)
+        _sh_color_gradients(grad_rows, means, coeffs, cameras, splats, radii, settings.sh_degree, grads[4], grads[0],
+                            wdev)  # fmt: skip
     adj_coeffs = None if spherical_harmonics else vectors(grads[4])
     adj_args = [vectors(grads[0]), vectors(grads[1]), vectors(grads[2]), grads[3], adj_coeffs, None, None, None,
                 None, None, 0, 0, 0, zero, 0, grad_rows]  # fmt: skip
@@ -554,14 +555,16 @@ def _project_backward(grad_rows, means, quats, scales, opacities, coeffs, camera
     return grads
 
 
-def _sh_coefficient_gradients(grad_rows, means, cameras: _Cameras, splats: torch.Tensor, radii: torch.Tensor,
-                              sh_degree: int, grad_coeffs: torch.Tensor, wdev) -> None:  # fmt: skip
-    """Write the SH coefficients' gradient ``grad_coeffs [N,K,3]`` (up to ``sh_degree``) from the gradient of the
-    projected rows ``[B*N, 10]``, one thread per Gaussian (split over the threads on the CPU)."""
-    args = [vectors(means), matrices(cameras.viewmats), cameras.origin, vectors(radii), splats, grad_rows, sh_degree]
+def _sh_color_gradients(grad_rows, means, coeffs, cameras: _Cameras, splats: torch.Tensor, radii: torch.Tensor,
+                        sh_degree: int, grad_coeffs: torch.Tensor, grad_means: torch.Tensor, wdev) -> None:  # fmt: skip
+    """Write the SH coefficients' gradient ``grad_coeffs [N,K,3]`` (up to ``sh_degree``) and add the colours'
+    gradient through the view direction to ``grad_means [N,3]``, from the gradient of the projected rows
+    ``[B*N, 10]``, one thread per Gaussian (split over the threads on the CPU)."""
+    args = [vectors(means), vectors(coeffs), matrices(cameras.viewmats), cameras.origin, vectors(radii), splats,
+            grad_rows, sh_degree]  # fmt: skip
     run_concurrently([
-        functools.partial(launch, raster_project.sh_coefficient_gradients, count,
-                          [*args, first, vectors(grad_coeffs)], wdev, layout=means.dtype)
+        functools.partial(launch, raster_project.sh_color_gradients, count,
+                          [*args, first, vectors(grad_coeffs), vectors(grad_means)], wdev, layout=means.dtype)
         for first, count in row_chunks(means.shape[0], means.device)
     ])  # fmt: skip
 
