@@ -134,3 +134,18 @@ def test_kernel_times_name_our_kernels_on_cuda():
     for case, expected in (("ours fwd", "composite_forward"), ("ours fwd+bwd", "composite_backward")):
         assert result[case]["total_us"] > 0
         assert any(expected in name for name, _, _ in result[case]["kernels"]), case
+
+
+def test_gradient_cosine_against_gsplat_is_the_worst_arguments_cosine():
+    """``bench raster``'s gradient agreement with gsplat: the smallest cosine over the arguments, so one argument
+    whose gradient turns away shows even when the others agree."""
+    from codecsplat_warp.bench.raster import gradient_cosine
+
+    ours = (torch.tensor([1.0, 0.0]), torch.tensor([[2.0, 1.0]], dtype=torch.float32))
+    assert gradient_cosine(ours, ours) == pytest.approx(1.0, abs=1e-12)
+    scaled = (torch.tensor([3.0, 0.0]), 0.5 * ours[1])
+    assert gradient_cosine(ours, scaled) == pytest.approx(1.0, abs=1e-12)
+    turned = (torch.tensor([3.0, 0.0]), torch.tensor([[1.0, -2.0]]))
+    assert gradient_cosine(ours, turned) == pytest.approx(0.0, abs=1e-12)
+    with pytest.raises(ValueError):
+        gradient_cosine(ours, ours[:1])

@@ -11,7 +11,8 @@ For each workload: median ms of forward (no grad) and forward+backward (loss = w
 depth), peak memory of forward+backward (CUDA: torch allocator delta, Warp's own pool reported apart; CPU:
 peak RSS growth in a fresh process), intersection count, and -- on CUDA with gsplat importable --
 gsplat's ``rasterization(packed=False, render_mode="RGB+ED")`` on the same inputs, its times (ours and gsplat's
-calls timed in interleaved rounds) and the PSNR of our RGB against its RGB. A small scene is also compared with
+calls timed in interleaved rounds), the PSNR of our RGB against its RGB and the smallest cosine, over the five
+Gaussian arguments, between our gradients and gsplat's (:func:`gradient_cosine`). A small scene is also compared with
 the dense torch reference (time and max error).
 On the CPU (gsplat has no CPU rasterizer) each workload is timed, in interleaved rounds, in three ways: the tile
 layout on one thread and on every thread of ``--threads`` (default: every available core), and the block layout on
@@ -92,6 +93,7 @@ COLUMNS = [
     ("ratio_fwd", "fwd / gsplat", ".2f"),
     ("ratio_fwd_bwd", "fwd+bwd / gsplat", ".2f"),
     ("psnr_vs_gsplat_db", "PSNR vs gsplat dB", ".1f"),
+    ("grad_cosine_vs_gsplat", "grad cosine vs gsplat", ".6f"),
 ]
 
 CPU_COLUMNS = [
@@ -187,6 +189,13 @@ def gsplat_forward_backward(gsplat, scene: dict):
     return torch.autograd.grad(loss, args[:5])
 
 
+def gradient_cosine(ours: tuple[torch.Tensor, ...], theirs: tuple[torch.Tensor, ...]) -> float:
+    """The smallest cosine, over the arguments, between two sets of gradients (each argument's gradient flattened,
+    in float64): 1 when every argument's gradient points the same way."""
+    return min(float(torch.nn.functional.cosine_similarity(a.double().flatten(), b.double().flatten(), dim=0))
+               for a, b in zip(ours, theirs, strict=True))  # fmt: skip
+
+
 def _gsplat_render(gsplat, args: list, scene: dict) -> torch.Tensor:
     render, _, _ = gsplat["rasterization"](
         *args, scene["width"], scene["height"], near_plane=0.01, far_plane=1e10, packed=False,
@@ -208,7 +217,7 @@ def measure_workload(workload: Workload, device: torch.device, reps: int, scale:
     try:
         rgb, _, _, meta = ours_forward(scene)
         row["intersections"] = meta.intersection_count
-        ours_forward_backward(scene)
+        ours_grads = ours_forward_backward(scene)
     except Exception as exc:  # noqa: BLE001 - a benchmark reports failures and goes on
         row["error"] = f"warp: {type(exc).__name__}: {exc}"
         traceback.print_exc()
@@ -216,7 +225,7 @@ def measure_workload(workload: Workload, device: torch.device, reps: int, scale:
     if gsplat is not None and gsplat.get("rasterization") is not None:
         try:
             theirs = gsplat_forward(gsplat, scene)[..., :3]
-            gsplat_forward_backward(gsplat, scene)
+            row["grad_cosine_vs_gsplat"] = gradient_cosine(ours_grads, gsplat_forward_backward(gsplat, scene))
             row["psnr_vs_gsplat_db"] = float(psnr(rgb.permute(0, 3, 1, 2), theirs.permute(0, 3, 1, 2), clip=False))
             calls.update(gsplat_fwd_ms=lambda: gsplat_forward(gsplat, scene),
                          gsplat_fwd_bwd_ms=lambda: gsplat_forward_backward(gsplat, scene))  # fmt: skip
