@@ -59,7 +59,7 @@ from torch.nn import functional as F
 from ..errors import InputError
 from ..measure import Timer, no_timer
 from ..nn.config import ModelConfig
-from ..nn.layers import conv3x3
+from ..nn.layers import conv3x3, pixel_shuffle_conv
 from . import entropy
 
 LAMBDA_MIN = 16.0
@@ -152,7 +152,7 @@ class Upsample2x(nn.Module):
         self.conv = conv3x3(channels, 4 * channels)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return F.pixel_shuffle(self.conv(x), 2)
+        return pixel_shuffle_conv(x, self.conv, 2)
 
 
 class Analysis(nn.Module):

@@ -17,7 +17,7 @@ from ..cameras import Cameras
 from ..errors import InputError
 from ..gaussians import Gaussians, quat_multiply, rotate_sh, rotmat_to_quat
 from ..nn.config import FEATURE_STRIDE, ModelConfig
-from ..nn.layers import conv3x3, conv_stack
+from ..nn.layers import conv3x3, conv_stack, pixel_shuffle_conv
 from ..ops.geometry import unproject
 
 SH_HIGHER_ORDER_SCALE = 0.1
@@ -74,7 +74,7 @@ class SubPixelUpsample(nn.Module):
         self.conv = conv3x3(in_channels, out_channels * FEATURE_STRIDE**2)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return F.pixel_shuffle(self.conv(x), FEATURE_STRIDE)
+        return pixel_shuffle_conv(x, self.conv, FEATURE_STRIDE)
 
 
 class DepthHead(nn.Module):

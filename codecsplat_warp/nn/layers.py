@@ -117,6 +117,49 @@ def conv_stack(in_channels: int, channels: int, out_channels: int, blocks: int, 
                          nn.ReLU(inplace=False), out)
 
 
+class _PixelShuffleWithBias(torch.autograd.Function):
+    """``F.pixel_shuffle(y + bias[:, None, None], factor)`` in one pass: the bias add writes the shuffled layout."""
+
+    @staticmethod
+    def forward(ctx, y: torch.Tensor, bias: torch.Tensor, factor: int) -> torch.Tensor:
+        n, c, h, w = y.shape
+        channels = c // factor**2
+        order = (0, 1, 4, 2, 5, 3)  # [n, channels, row, sub-row, column, sub-column]
+        out = y.new_empty(n, channels, h, factor, w, factor)
+        torch.add(y.reshape(n, channels, factor, factor, h, w).permute(order),
+                  bias.to(y.dtype).view(1, channels, factor, factor, 1, 1).permute(order), out=out)  # fmt: skip
+        ctx.factor = factor
+        ctx.bias_dtype = bias.dtype
+        return out.view(n, channels, h * factor, w * factor)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        grad_y = F.pixel_unshuffle(grad, ctx.factor)
+        grad_bias = grad_y.sum(dim=(0, 2, 3)).to(ctx.bias_dtype) if ctx.needs_input_grad[1] else None
+        return grad_y, grad_bias, None
+
+
+def pixel_shuffle_with_bias(y: torch.Tensor, bias: torch.Tensor, factor: int) -> torch.Tensor:
+    """``F.pixel_shuffle(y + bias[:, None, None], factor)`` for ``y [N, C, h, w]`` (C divisible by factor^2) and
+    ``bias [C]``, with the bias added while the shuffle copies: ``[N, C / factor^2, h * factor, w * factor]``,
+    differentiable in both."""
+    if y.dim() != 4 or y.shape[1] % factor**2 or bias.shape != (y.shape[1],):
+        raise InputError(f"pixel shuffle by {factor} of {tuple(y.shape)} needs [N, C, h, w] with C divisible by "
+                         f"{factor**2} and a bias [C]; got {tuple(bias.shape)}")
+    return _PixelShuffleWithBias.apply(y, bias, factor)
+
+
+def pixel_shuffle_conv(x: torch.Tensor, conv: nn.Conv2d, factor: int) -> torch.Tensor:
+    """``F.pixel_shuffle(conv(x), factor)`` (sub-pixel upsampling). On CUDA the convolution runs without its bias,
+    which :func:`pixel_shuffle_with_bias` adds during the shuffle's copy: ATen adds a cuDNN convolution's bias in
+    a pass of its own, so this saves one pass over the ``factor^2``-channel map (the same values: the same float
+    additions). The CPU's convolutions add the bias themselves, so there the plain path runs."""
+    if not x.is_cuda or conv.bias is None or conv.padding_mode != "zeros":
+        return F.pixel_shuffle(conv(x), factor)
+    y = F.conv2d(x, conv.weight, None, conv.stride, conv.padding, conv.dilation, conv.groups)
+    return pixel_shuffle_with_bias(y, conv.bias, factor)
+
+
 def resize(x: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """Bilinear resize of [N,C,h,w] to [N,C,height,width] (identity when the size already matches)."""
     if x.shape[-2:] == (height, width):
