@@ -16,6 +16,20 @@ import warp as wp
 MAX_COEFFICIENTS = 16
 """Basis functions up to degree 3, the highest supported."""
 
+# The basis's constants (Python floats: a kernel casts them to its scalar type, float64 without loss).
+_BAND0 = 0.28209479177387814
+_BAND1 = -0.48860251190292  # basis 1, 2, 3: _BAND1 y, -_BAND1 z, _BAND1 x
+_BAND2_XY = 0.5462742152960395  # basis 4 and 8: _BAND2_XY 2xy, _BAND2_XY (x^2 - y^2)
+_BAND2_Z = -1.092548430592079  # basis 5 and 7: _BAND2_Z z y, _BAND2_Z z x
+_BAND2_ZZ = 0.9461746957575601  # basis 6: _BAND2_ZZ z^2 - _BAND2_ONE
+_BAND2_ONE = 0.3153915652525201
+_BAND3_A = -0.5900435899266435  # basis 9 and 15: _BAND3_A (3x^2 y - y^3), _BAND3_A (x^3 - 3xy^2)
+_BAND3_B = 1.445305721320277  # basis 10 and 14: _BAND3_B z 2xy, _BAND3_B z (x^2 - y^2)
+_BAND3_ZZ = -2.285228997322329  # basis 11 and 13: (_BAND3_ZZ z^2 + _BAND3_ONE) y, the same times x
+_BAND3_ONE = 0.4570457994644658
+_BAND3_ZZZ = 1.865881662950577  # basis 12: z (_BAND3_ZZZ z^2 + _BAND3_Z)
+_BAND3_Z = -1.119528997770346
+
 
 @wp.func
 def sh_count(degree: int):
@@ -36,7 +50,7 @@ def sh_basis(direction: Any, degree: int):
     b2 = zero
     b3 = zero
     if degree >= 1:
-        a1 = type(x)(-0.48860251190292)
+        a1 = type(x)(_BAND1)
         b1 = a1 * y
         b2 = -a1 * z
         b3 = a1 * x
@@ -49,11 +63,11 @@ def sh_basis(direction: Any, degree: int):
     c1 = x * x - y * y
     s1 = type(x)(2.0) * x * y
     if degree >= 2:
-        bz = type(x)(-1.092548430592079) * z
-        a2 = type(x)(0.5462742152960395)
+        bz = type(x)(_BAND2_Z) * z
+        a2 = type(x)(_BAND2_XY)
         b4 = a2 * s1
         b5 = bz * y
-        b6 = type(x)(0.9461746957575601) * z2 - type(x)(0.3153915652525201)
+        b6 = type(x)(_BAND2_ZZ) * z2 - type(x)(_BAND2_ONE)
         b7 = bz * x
         b8 = a2 * c1
     b9 = zero
@@ -64,19 +78,19 @@ def sh_basis(direction: Any, degree: int):
     b14 = zero
     b15 = zero
     if degree >= 3:
-        c3 = type(x)(-2.285228997322329) * z2 + type(x)(0.4570457994644658)
-        bz3 = type(x)(1.445305721320277) * z
-        a3 = type(x)(-0.5900435899266435)
+        c3 = type(x)(_BAND3_ZZ) * z2 + type(x)(_BAND3_ONE)
+        bz3 = type(x)(_BAND3_B) * z
+        a3 = type(x)(_BAND3_A)
         c2 = x * c1 - y * s1
         s2 = x * s1 + y * c1
         b9 = a3 * s2
         b10 = bz3 * s1
         b11 = c3 * y
-        b12 = z * (type(x)(1.865881662950577) * z2 - type(x)(1.119528997770346))
+        b12 = z * (type(x)(_BAND3_ZZZ) * z2 + type(x)(_BAND3_Z))
         b13 = c3 * x
         b14 = bz3 * c1
         b15 = a3 * c2
-    return wp.vector(type(x)(0.28209479177387814), b1, b2, b3, b4, b5, b6, b7, b8, b9, b10, b11, b12, b13, b14, b15)
+    return wp.vector(type(x)(_BAND0), b1, b2, b3, b4, b5, b6, b7, b8, b9, b10, b11, b12, b13, b14, b15)
 
 
 @wp.func
@@ -121,21 +135,21 @@ def sh_direction_gradient(direction: Any, degree: int, weights: Any):
     gy = zero
     gz = zero
     if degree >= 1:
-        a1 = type(x)(-0.48860251190292)
+        a1 = type(x)(_BAND1)
         gx = a1 * weights[3]
         gy = a1 * weights[1]
         gz = -a1 * weights[2]
     if degree >= 2:
-        a2 = two * type(x)(0.5462742152960395)
-        k5 = type(x)(-1.092548430592079)
+        a2 = two * type(x)(_BAND2_XY)
+        k5 = type(x)(_BAND2_Z)
         gx = gx + a2 * (y * weights[4] + x * weights[8]) + k5 * z * weights[7]
         gy = gy + a2 * (x * weights[4] - y * weights[8]) + k5 * z * weights[5]
-        gz = gz + k5 * (y * weights[5] + x * weights[7]) + two * type(x)(0.9461746957575601) * z * weights[6]
+        gz = gz + k5 * (y * weights[5] + x * weights[7]) + two * type(x)(_BAND2_ZZ) * z * weights[6]
     if degree >= 3:
-        a3 = type(x)(-0.5900435899266435)
-        k10 = type(x)(1.445305721320277)
-        k11 = type(x)(-2.285228997322329)
-        c3 = k11 * z * z + type(x)(0.4570457994644658)
+        a3 = type(x)(_BAND3_A)
+        k10 = type(x)(_BAND3_B)
+        k11 = type(x)(_BAND3_ZZ)
+        c3 = k11 * z * z + type(x)(_BAND3_ONE)
         c1 = x * x - y * y
         gx = gx + a3 * (two * three * x * y * weights[9] + three * c1 * weights[15]) + c3 * weights[13]
         gx = gx + two * k10 * z * (y * weights[10] + x * weights[14])
@@ -143,6 +157,6 @@ def sh_direction_gradient(direction: Any, degree: int, weights: Any):
         gy = gy + two * k10 * z * (x * weights[10] - y * weights[14])
         gz = gz + k10 * (two * x * y * weights[10] + c1 * weights[14])
         gz = gz + two * k11 * z * (y * weights[11] + x * weights[13])
-        gz = gz + (three * type(x)(1.865881662950577) * z * z - type(x)(1.119528997770346)) * weights[12]
+        gz = gz + (three * type(x)(_BAND3_ZZZ) * z * z + type(x)(_BAND3_Z)) * weights[12]
     g = wp.vector(gx, gy, gz)
     return (g - d * wp.dot(d, g)) / length
