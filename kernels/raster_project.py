@@ -490,9 +490,9 @@ def projection_kernels(spherical_harmonics: bool) -> ProjectionKernels:
         visible: with 90 % of the Gaussians off-screen nearly every warp would. With SH colours the twin leaves
         the colour out (it writes zero), and :func:`sh_color_gradients` gives the coefficients' gradient and the
         means' through the view direction, one thread per Gaussian: here the coefficients would cost 3 (degree
-        + 1)^2 atomic adds per row, and their uncoalesced loads and the basis's registers, spilled, took half of
-        an 8-view RDO step's projection adjoint (Nsight Compute on an H200: 85 % of its L2 sectors excessive,
-        84 M spill requests).
+        + 1)^2 atomic adds per row, and their uncoalesced loads and the basis's spilled registers took 1.8 of the
+        3.0 ms of an 8-view RDO step's adjoint (H200; Nsight Compute: 85 % of its L2 sectors excessive, 84 M
+        spill requests).
         """
         t = wp.tid()
         if wp.int64(t) >= visible_count[0]:
