@@ -498,7 +498,8 @@ def launch(
     with the same types replay that command: every tensor's data pointer is written into the recorded array
     descriptor (which holds no reference to it: the command keeps no tensor alive), its shape only when it
     changed, scalars are written in place, the launch dimensions are updated when they change, and the kernel
-    is called (on the CPU directly on one persistent argument struct). Nothing runs when a launch dimension is 0.
+    is called (on the CPU directly on one persistent argument struct, on CUDA by Warp's native launch call).
+    Nothing runs when a launch dimension is 0.
 
     Args:
         kernel: a ``@wp.kernel``, generic (``typing.Any`` annotations) or concrete.
@@ -575,6 +576,8 @@ class _Command:
         self.invoke = recorded.launch
         if recorded.device.is_cpu and recorded.block_dim <= 1 and not self.packed:
             self.invoke = _CpuInvoker(recorded)
+        elif recorded.device.is_cuda:
+            self.invoke = _CudaInvoker(recorded)
         params = recorded.params
         self.arrays = [(j, params[1 + j], ctypes.sizeof(dtype._type_)) for j, dtype in enumerate(dtypes)
                        if dtype is not None]  # fmt: skip
@@ -647,6 +650,36 @@ class _CpuInvoker:
             recorded.launch()
         else:
             self.entry(ctypes.byref(recorded.bounds), *self.structs)
+
+
+class _CudaInvoker:
+    """Runs a recorded CUDA launch by Warp's native launch call on the command's packed parameters, the constant
+    arguments of that call taken once, instead of ``wp.Launch.launch``, which looks them up on every launch. Under
+    an active Warp graph capture or APIC capture it defers to ``wp.Launch.launch``, which does what those need
+    (keeping the module loaded, recording the launch)."""
+
+    __slots__ = ("recorded", "function", "shared_bytes", "grid_stride")
+
+    def __init__(self, recorded):
+        self.recorded = recorded
+        hooks = recorded.hooks
+        self.function = hooks.backward if recorded.adjoint else hooks.forward
+        self.shared_bytes = hooks.backward_smem_bytes if recorded.adjoint else hooks.forward_smem_bytes
+        self.grid_stride = int(recorded.grid_stride)
+
+    def __call__(self) -> None:
+        recorded = self.recorded
+        device = recorded.device
+        if warp_context.runtime.captures or warp_context._get_apic_capture_for_device(device) is not None:
+            recorded.launch()
+            return
+        failed = warp_context.runtime.core.wp_cuda_launch_kernel(
+            device.context, self.function, recorded.bounds.size, recorded.max_blocks, recorded.block_dim,
+            self.grid_stride, recorded.cluster_dim, self.shared_bytes, recorded.params_addr,
+            device.stream.cuda_stream, None,
+        )  # fmt: skip
+        if failed:
+            warp_context._raise_cuda_launch_error(recorded.kernel, device, recorded.hooks, recorded.adjoint)
 
 
 def _bind_cpu_arguments(recorded) -> list:
