@@ -614,7 +614,7 @@ def published_key_layout(num_tiles: int, nearest_bits: int, farthest_bits: int, 
     flags[lines[3]], flags[lines[7] + 1] = nearest_bits, farthest_bits
     ints = torch.cat([torch.zeros(2, dtype=torch.int64), flags]).to(device)
     # one camera, one row of num_tiles 16-pixel tiles
-    settings = raster_ops._make_settings(torch.zeros(1, 3), 16 * num_tiles, 16, 0.01, 100.0, "classic", None, True,
+    settings = raster_ops._make_settings(2, 3, 16 * num_tiles, 16, 0.01, 100.0, "classic", None, True,
                                          16, 1e-4)  # fmt: skip
     radii = torch.zeros(1, 2, dtype=torch.int32, device=device)
     binning = raster_ops._Binning(torch.zeros(1, 10, device=device), radii, ints, ints[:1], torch.zeros_like(ints[:1]),

@@ -302,14 +302,25 @@ def _prepare(means, quats, scales, opacities, colors, viewmats, Ks, width, heigh
     )  # fmt: skip
     if tile_size is None:
         tile_size = default_tile_size(means.device)
-    settings = _make_settings(colors, width, height, near, far, mode, sh_degree, render_depth, tile_size,
-                              min_transmittance)  # fmt: skip
+    settings = _settings(colors.dim(), colors.shape[1], width, height, near, far, mode, sh_degree, render_depth,
+                         tile_size, min_transmittance)  # fmt: skip
     _check_key_bits(viewmats.shape[0], settings)
     return means, quats, scales, opacities, colors, viewmats.detach(), Ks.detach(), background, settings
 
 
-def _make_settings(colors, width, height, near, far, mode, sh_degree, render_depth, tile_size,
+def _settings(*arguments) -> _Settings:
+    """:func:`_make_settings` of the arguments, from a cache when they are hashable (settings are the same for most
+    calls of a program)."""
+    try:
+        return _cached_settings(*arguments)
+    except TypeError:  # an unhashable argument (or a TypeError of the checks): checked without the cache
+        return _make_settings(*arguments)
+
+
+def _make_settings(colors_rank, colors_width, width, height, near, far, mode, sh_degree, render_depth, tile_size,
                    min_transmittance) -> _Settings:  # fmt: skip
+    """The checked settings of a call whose colours have rank ``colors_rank`` (2: RGB, 3: SH) and second size
+    ``colors_width``; InputError for a bad one."""
     for name, value in (("width", width), ("height", height)):
         if isinstance(value, bool) or int(value) != value or value < 1:
             raise InputError(f"{name} must be a positive integer, got {value!r}")
@@ -319,11 +330,15 @@ def _make_settings(colors, width, height, near, far, mode, sh_degree, render_dep
         raise InputError(f"tile_size must be an integer in 1..32, got {tile_size!r}")
     if not (math.isfinite(near) and near > 0 and far > near):
         raise InputError(f"near and far must satisfy 0 < near < far, got near={near}, far={far}")
-    degree = _sh_degree(colors, sh_degree)
+    degree = _sh_degree(colors_rank, colors_width, sh_degree)
     width, height, tile_size = int(width), int(height), int(tile_size)
     tiles_x, tiles_y = -(-width // tile_size), -(-height // tile_size)
     return _Settings(width, height, float(near), float(far), degree, mode == "antialiased", bool(render_depth),
                      tile_size, _transmittance_threshold(min_transmittance), tiles_x, tiles_y)  # fmt: skip
+
+
+_cached_settings = functools.lru_cache(maxsize=256, typed=True)(_make_settings)
+""":func:`_make_settings` cached (``typed``: ``True`` is not taken for 1); an error is raised again on every call."""
 
 
 def _transmittance_threshold(value) -> float:
@@ -333,13 +348,13 @@ def _transmittance_threshold(value) -> float:
     return float(value)
 
 
-def _sh_degree(colors: torch.Tensor, sh_degree: int | None) -> int:
-    """-1 for RGB colours, else the SH degree to evaluate (checked against K)."""
-    if colors.dim() == 2:
+def _sh_degree(colors_rank: int, K: int, sh_degree: int | None) -> int:
+    """-1 for RGB colours (``colors_rank`` 2), else the SH degree to evaluate (checked against the K coefficients
+    of ``[N,K,3]`` colours)."""
+    if colors_rank == 2:
         if sh_degree is not None:
             raise InputError("sh_degree is given but colors is [N,3] RGB; pass SH coefficients [N,K,3]")
         return -1
-    K = colors.shape[1]
     if sh_degree is None:
         root = math.isqrt(K)
         if root * root != K or not 1 <= root <= 4:
@@ -662,9 +677,15 @@ def _composite_launch(device: torch.device, tile_size: int, num_tiles: int) -> _
     ``raster_composite.MAX_LANES`` a block); on the CPU the tile layout, or one-lane blocks (:func:`cpu_layout`)."""
     if device.type == "cpu" and getattr(_layout_choice, "name", CPU_LAYOUTS[0]) == "tiles":
         return _TILE_COMPOSITE
+    return _block_composite(device.type, tile_size, num_tiles)
+
+
+@functools.lru_cache(maxsize=64)
+def _block_composite(device_type: str, tile_size: int, num_tiles: int) -> _BlockComposite:
+    """The block layout of a call on a device of ``device_type`` (see :func:`_composite_launch`)."""
     pixels = tile_size * tile_size
-    lanes = min(pixels, raster_composite.MAX_LANES) if device.type == "cuda" else 1
-    batch = lanes if device.type == "cuda" else CPU_BATCH
+    lanes = min(pixels, raster_composite.MAX_LANES) if device_type == "cuda" else 1
+    batch = lanes if device_type == "cuda" else CPU_BATCH
     blocks_per_tile = -(-pixels // lanes)
     kernels = raster_composite.composite_kernels(batch)
     return _BlockComposite(num_tiles * blocks_per_tile, lanes, blocks_per_tile, kernels)
@@ -875,11 +896,11 @@ class _Rasterize(torch.autograd.Function):
         grads = [None] * 5
         if any(ctx.needs_input_grad[:5]):
             splats = saved.splats
-            coeffs = _sh_coefficients(colors)
             output_grads = [_flat_gradient(grad_color, splats, (3,)), _flat_gradient(grad_depth, splats, ()),
                             _flat_gradient(grad_alpha, splats, ())]  # fmt: skip
             with warp_scope(means.device) as wdev:
                 grad_rows = saved.composite.backward(saved, colors_or_black, settings, output_grads, wdev)
+                coeffs = _sh_coefficients(colors)  # after the compositing launch: its GPU work starts sooner
                 grads = _project_backward(grad_rows, means, quats, scales, opacities, coeffs, saved.cameras,
                                           saved.visible, saved.splats, radii, settings, wdev)  # fmt: skip
             grads[4] = grads[4].view(ctx.colors_shape)
