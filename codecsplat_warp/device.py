@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import functools
+import gc
 import os
 import sys
 import tempfile
@@ -295,6 +296,66 @@ def available_devices() -> list[torch.device]:
     return [torch.device("cpu")] + [torch.device(f"cuda:{i}") for i in range(torch.cuda.device_count())]
 
 
+@contextlib.contextmanager
+def capture_guard(device: torch.device) -> Iterator[None]:
+    """Run a CUDA graph capture on ``device`` (its body) safely in a long process: Python's garbage is collected
+    first and the collector is held off until the capture ends; when the body raises, torch's CUDA generator of
+    ``device`` is taken out of the capturing state a failed capture leaves it in and given back the state it had
+    before, and the error propagates.
+
+    Why: a capture records the stream's work and forbids the CUDA calls that would act on the device at once;
+    freeing a CUDA graph (``cuGraphExecDestroy``) is one of them. Graphs that only Python's cyclic garbage
+    collector frees (objects that refer to each other) were freed when the collector happened to run in the middle
+    of a later capture: the capture was invalidated (``cudaErrorStreamCaptureInvalidated``; seen in a long process,
+    ``pytest -m cuda`` run whole), and torch's CUDA generator, left in its capturing state, refused every random
+    draw after it ("Offset increment outside graph capture")."""
+    gc.collect()
+    collecting = gc.isenabled()
+    gc.disable()
+    rng_state = torch.cuda.get_rng_state(device)
+    try:
+        yield
+    except BaseException:
+        _end_generator_capture(device)
+        torch.cuda.set_rng_state(rng_state, device)
+        raise
+    finally:
+        if collecting:
+            gc.enable()
+
+
+def _end_generator_capture(device: torch.device) -> None:
+    """Take torch's CUDA generator of ``device`` out of the capturing state that a capture which failed before its
+    end leaves it in (its prologue ran, its epilogue did not): one trivial capture runs both."""
+    with torch.cuda.device(device):
+        torch.cuda.synchronize(device)
+        scratch = torch.zeros(1, device=device)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            scratch.add_(1.0)
+        del graph
+
+
+
+@contextlib.contextmanager
+def warp_capture(device: torch.device) -> Iterator[list]:
+    """Tell Warp that torch's current stream of the CUDA ``device`` is being captured (by a ``torch.cuda.graph``
+    entered before): inside the block Warp's launches keep their modules loaded for the graph and its temporary
+    buffers (e.g. its scan's) are freed when the graph is, not at once (which a capture forbids). Yields a list
+    that holds Warp's record of the capture once the block ends: keep it as long as the captured graph."""
+    wdev = warp_device(device)
+    stream = _warp_stream(wdev, torch._C._cuda_getCurrentRawStream(wdev.ordinal))
+    wp.capture_begin(device=wdev, stream=stream, external=True)
+    record: list = []
+    try:
+        yield record
+    except BaseException:
+        with contextlib.suppress(Exception):  # the capture's own error is the one to report
+            wp.capture_end(device=wdev, stream=stream)
+        raise
+    record.append(wp.capture_end(device=wdev, stream=stream))
+
+
 def warp_scope(device: torch.device) -> "_WarpScope":
     """Context in which Warp launches for ``device`` run on torch's current stream of that device.
 
@@ -415,22 +476,68 @@ def stage_host_values(tensor: torch.Tensor, wdev, start: int = 0, count: int | N
         return HostValues(tensor[start : start + count].tolist())
     if not hasattr(_pinned, "events"):
         _pinned.buffer, _pinned.address, _pinned.events, _pinned.generation = None, 0, {}, 0
-    core = warp_context.runtime.core
     if _pinned.buffer is None or _pinned.buffer.numel() < count:
         for event in _pinned.events.values():  # copies still on their way into the old buffer land first
-            core.wp_cuda_event_synchronize(event.cuda_event)
+            warp_context.runtime.core.wp_cuda_event_synchronize(event.cuda_event)
         _pinned.buffer = torch.empty(max(count, 1024), dtype=torch.int64, pin_memory=True)
         _pinned.address = _pinned.buffer.data_ptr()
     event = _pinned.events.get(wdev.ordinal)
     if event is None:
         event = _pinned.events[wdev.ordinal] = wp.Event(wdev)
-    stream = wdev.stream.cuda_stream
-    source = tensor.data_ptr() + 8 * start
-    if count and not core.wp_memcpy_d2h(wdev.context, _pinned.address, source, 8 * count, stream):
-        raise RuntimeError(f"Warp could not queue a device-to-host copy: {warp_context.runtime.get_error_string()}")
-    core.wp_cuda_event_record(event.cuda_event, stream, False)
+    _queue_read(tensor, wdev, start, count, _pinned.address, event)
     _pinned.generation += 1
     return HostValues(None, _pinned.address, count, event, _pinned.generation)
+
+
+def _queue_read(tensor: torch.Tensor, wdev, start: int, count: int, address: int, event) -> None:
+    """Queue the copy of ``count`` int64 values of the CUDA ``tensor`` from ``start`` on to the pinned host
+    ``address``, and the Warp ``event`` after it, on Warp's current stream of ``wdev``."""
+    _queue_copy(tensor, wdev, start, count, address)
+    warp_context.runtime.core.wp_cuda_event_record(event.cuda_event, wdev.stream.cuda_stream, False)
+
+
+def _queue_copy(tensor: torch.Tensor, wdev, start: int, count: int, address: int) -> None:
+    """Queue the copy of ``count`` int64 values of the CUDA ``tensor`` from ``start`` on to the pinned host
+    ``address`` on Warp's current stream of ``wdev``."""
+    source = tensor.data_ptr() + 8 * start
+    if count and not warp_context.runtime.core.wp_memcpy_d2h(wdev.context, address, source, 8 * count,
+                                                             wdev.stream.cuda_stream):  # fmt: skip
+        raise RuntimeError(f"Warp could not queue a device-to-host copy: {warp_context.runtime.get_error_string()}")
+
+
+class PinnedRead:
+    """A read of ``count`` int64 values of a CUDA tensor into a pinned host buffer of its own, behind an event of its
+    own: for a read that a CUDA graph captures (the graph keeps the buffer's address; the event is an external one,
+    which a graph records as a node that the host can wait for; :func:`stage_host_values` shares one buffer per
+    thread). :meth:`stage` queues it (with :func:`stage_host_values`' arguments, inside
+    :func:`warp_scope`), :meth:`values` waits for the last one queued or replayed and returns it."""
+
+    def __init__(self, count: int):
+        self.count = count
+        self.buffer = torch.empty(max(count, 1), dtype=torch.int64, pin_memory=True)
+        self.address = self.buffer.data_ptr()
+        self.event = torch.cuda.Event(external=True)
+
+    def stage(self, tensor: torch.Tensor, wdev, start: int, count: int) -> "PinnedRead":
+        """Queue the read of ``tensor[start : start + count]`` (a contiguous 1-D int64 CUDA tensor, ``count`` as
+        given to the constructor) on Warp's current stream of ``wdev``, which :func:`warp_scope` made torch's current
+        stream; returns this read.
+
+        Raises:
+            InputError: another count, or not a contiguous 1-D int64 tensor holding the range.
+        """
+        if count != self.count or tensor.dtype != torch.int64 or tensor.dim() != 1 or not tensor.is_contiguous() \
+                or not 0 <= start <= tensor.shape[0] - count:
+            raise InputError(f"a PinnedRead of {self.count} values cannot read [{start}, {start + count}) of a "
+                             f"{tuple(tensor.shape)} {tensor.dtype} tensor")  # fmt: skip
+        _queue_copy(tensor, wdev, start, count, self.address)
+        self.event.record(torch.cuda.current_stream(tensor.device))
+        return self
+
+    def values(self) -> list:
+        """The values as a list of ints, once the copy has landed (waits for it alone)."""
+        self.event.synchronize()
+        return list((ctypes.c_int64 * self.count).from_address(self.address))
 
 
 def to_warp(tensor: torch.Tensor, dtype=None):

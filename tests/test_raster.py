@@ -563,6 +563,7 @@ def test_projection_folds_the_visible_depth_range(device, monkeypatch):
         return project(*args, **kwargs)
 
     monkeypatch.setattr(raster_ops, "_project", spy)
+    monkeypatch.setattr(raster_ops, "_graphs_enabled", lambda: False)  # the eager launches, spied on
     means, quats, scales, opacities, colors, viewmats, Ks = make_scene(3000, 40, 30, dtype=torch.float32, seed=6)
     means[::4, 2] *= -1.0
     inputs = [t.to(device) for t in (means, quats, scales, opacities, colors, viewmats, Ks)]
@@ -712,6 +713,7 @@ def test_projection_zeroes_every_tile_range(device, monkeypatch):
     tiles, ranges poisoned before it runs come out of the binning as from a clean buffer, and the images match."""
     import codecsplat_warp.ops.raster as raster_ops
 
+    monkeypatch.setattr(raster_ops, "_graphs_enabled", lambda: False)  # the eager launches, poisoned
     inputs = [t.to(device) for t in make_scene(6, 24, 20, seed=2)]
     means, quats, scales, opacities, colors, viewmats, Ks, background, settings = raster_ops._prepare(
         *inputs, 24, 20, 0.01, 1e10, None, "classic", None, True, 1, 1e-4
@@ -749,7 +751,8 @@ def speculating(monkeypatch):
         return emit(binning, capacity, *args)
 
     monkeypatch.setattr(raster_ops, "_emit", spy)
-    return capacities
+    with raster_ops.forward_graphs(False):  # the eager launches' speculation (graphs: tests/test_raster_graphs.py)
+        yield capacities
 
 
 def render_with_gradients(scene, size, tile_size):

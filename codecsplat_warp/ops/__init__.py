@@ -8,8 +8,8 @@
   plane sweep :func:`photometric_cost_volume` with its :func:`window_ncc_features`;
 * :mod:`.raster`: :func:`rasterize` (3D Gaussians -> images, gsplat's conventions, with a backward) and
   :func:`project_gaussians` (the projection step alone, -> :class:`ProjectedGaussians`), :class:`RasterMeta`;
-  :func:`cpu_layout` picks how CPU calls composite (benchmarks and tests), :func:`default_tile_size` the tile edge
-  a call uses when given none.
+  :func:`cpu_layout` picks how CPU calls composite (benchmarks and tests), :func:`forward_graphs` whether CUDA calls
+  replay their forward from CUDA graphs, :func:`default_tile_size` the tile edge a call uses when given none.
 
 Shapes, dtypes and units are in each function's docstring.
 """
@@ -20,11 +20,13 @@ from .geometry import (
 from .mvs import (
     MVSConfig, MVSDepth, SourceViews, mvs_depth, photometric_cost_volume, select_sources, window_ncc_features,
 )
-from .raster import ProjectedGaussians, RasterMeta, cpu_layout, default_tile_size, project_gaussians, rasterize
+from .raster import (
+    ProjectedGaussians, RasterMeta, cpu_layout, default_tile_size, forward_graphs, project_gaussians, rasterize,
+)
 
 __all__ = [
     "all_other_views", "inverse_depth_candidates", "nearest_views", "plane_sweep_cost_volume", "reproject_average",
     "unproject", "MVSConfig", "MVSDepth", "SourceViews", "mvs_depth", "photometric_cost_volume", "select_sources",
     "window_ncc_features", "ProjectedGaussians",
-    "RasterMeta", "cpu_layout", "default_tile_size", "project_gaussians", "rasterize",
+    "RasterMeta", "cpu_layout", "default_tile_size", "forward_graphs", "project_gaussians", "rasterize",
 ]

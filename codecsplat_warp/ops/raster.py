@@ -27,24 +27,33 @@ Function (or, when nothing needs a gradient, called without one) so that a call 
    (:mod:`~codecsplat_warp.kernels.raster_composite_cpu`, see :data:`CPU_LAYOUTS`), with the same results on any
    number of threads. Projection gradients come from an adjoint launch of its straight-line twin kernel.
 
+On CUDA, once a call shape has a guess, stages 1 to 5 of its calls are replayed from a CUDA graph
+(:class:`_ForwardGraph`, see :func:`forward_graphs`): the inputs are copied into the graph's, and the results out.
+
 Gradients flow to ``means``, ``quats``, ``scales``, ``opacities``, ``colors`` (RGB or SH) and
 ``background``. ``viewmats`` and ``Ks`` are **not** differentiated (their gradient is None).
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import functools
 import math
 import numbers
+import os
 import threading
+import warnings
 from dataclasses import dataclass
 from typing import Iterator, NamedTuple
 
 import torch
 
 from ..checks import FLOAT_DTYPES, check_finite, check_tensor, common_device, validation_enabled
-from ..device import cpu_threads, launch, matrices, stage_host_values, vectors, warp_dtype, warp_scope
+from ..device import (
+    PinnedRead, capture_guard, cpu_threads, launch, matrices, stage_host_values, vectors, warp_capture, warp_dtype,
+    warp_scope,
+)  # fmt: skip
 from ..errors import InputError, RasterMemoryError
 from ..kernels import raster_composite, raster_composite_cpu, raster_project, raster_reach, raster_row, raster_tiles
 from .primitives import inclusive_scan, radix_sort_pairs, row_chunks, run_concurrently, weighted_chunks
@@ -833,10 +842,25 @@ class _Saved(NamedTuple):
     composite_state: _TileState | None
 
 
-def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, leave_out, settings: _Settings,
-            max_intersection_bytes: int) -> tuple[tuple, _Saved]:  # fmt: skip
-    """The forward render on checked inputs: ``((rgb [B,H,W,3], depth [B,H,W,1] or None, alpha [B,H,W,1],
-    radii [B,N,2] int32, intersection count), what the backward needs)``."""
+class _Staged(NamedTuple):
+    """One call's projection stage, ready for its binning (:func:`_stage`): ``colors_or_black`` ``[B,3]`` or
+    ``[0,3]``, the prepared ``cameras``, projected rows ``splats [B*N, 10]``, the ``visible`` list, ``radii
+    [B*N, 2]`` int32, the zeroed tile ``ranges [B*tiles, 2]`` int32, the ``binning`` and the ``composite`` layout."""
+
+    colors_or_black: torch.Tensor
+    cameras: _Cameras
+    splats: torch.Tensor
+    visible: _Visible
+    radii: torch.Tensor
+    ranges: torch.Tensor
+    binning: _Binning
+    composite: _BlockComposite | _TileComposite
+
+
+def _stage(means, quats, scales, opacities, colors, background, viewmats, Ks, leave_out, settings: _Settings,
+           wdev) -> _Staged:  # fmt: skip
+    """Stages 1 to 3 on checked inputs (inside :func:`~codecsplat_warp.device.warp_scope`): the cameras, the
+    projection and the prefix sum of the tile counts."""
     B, N = viewmats.shape[0], means.shape[0]
     device = means.device
     coeffs = _sh_coefficients(colors)
@@ -848,24 +872,49 @@ def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, l
     visible = _visible_list(means, B * N)
     # the projection zeroes the ranges
     ranges = tile_counts.new_empty(B * settings.tiles_x * settings.tiles_y, 2, dtype=torch.int32)
+    _prepare_cameras(viewmats, Ks, colors_or_black, cameras, flags, visible, wdev)
+    radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, tile_masks,
+                     flags, visible, ranges, wdev)  # fmt: skip
+    inclusive_scan(tile_counts, offsets)
+    binning = _Binning(splats, radii, ints, tile_counts, tile_masks, offsets, flags, B, settings)
+    composite = _composite_launch(device, settings.tile_size, len(ranges))
+    return _Staged(colors_or_black, cameras, splats, visible, radii, ranges, binning, composite)
+
+
+def _render(means, quats, scales, opacities, colors, background, viewmats, Ks, leave_out, settings: _Settings,
+            max_intersection_bytes: int) -> tuple[tuple, _Saved]:  # fmt: skip
+    """The forward render on checked inputs: ``((rgb [B,H,W,3], depth [B,H,W,1] or None, alpha [B,H,W,1],
+    radii [B,N,2] int32, intersection count), what the backward needs)``; on CUDA replayed from a
+    :class:`_ForwardGraph` where one serves the call."""
+    B, N = viewmats.shape[0], means.shape[0]
+    device = means.device
+    shape = (device, B, N, settings.width, settings.height, settings.tile_size)
+    inputs = (means, quats, scales, opacities, colors, background, viewmats, Ks, leave_out)
+    if device.type == "cuda" and device.type in SPECULATIVE_DEVICE_TYPES:  # a graph replays a speculative binning
+        graphed = _graphed_render(inputs, settings, shape, max_intersection_bytes)
+        if graphed is not None:
+            return graphed
     with warp_scope(device) as wdev:
-        _prepare_cameras(viewmats, Ks, colors_or_black, cameras, flags, visible, wdev)
-        radii = _project(means, quats, scales, opacities, coeffs, cameras, settings, splats, tile_counts, tile_masks,
-                         flags, visible, ranges, wdev)  # fmt: skip
-        inclusive_scan(tile_counts, offsets)
-        binning = _Binning(splats, radii, ints, tile_counts, tile_masks, offsets, flags, B, settings)
-        composite = _composite_launch(device, settings.tile_size, len(ranges))
-        shape = (device, B, N, settings.width, settings.height, settings.tile_size)
+        staged = _stage(*inputs, settings, wdev)
         count, sorted_ids, outputs, composite_state = _bin_and_composite(
-            binning, ranges, colors_or_black, composite, shape if device.type in SPECULATIVE_DEVICE_TYPES else None,
-            max_intersection_bytes, wdev,
+            staged.binning, staged.ranges, staged.colors_or_black, staged.composite,
+            shape if device.type in SPECULATIVE_DEVICE_TYPES else None, max_intersection_bytes, wdev,
         )  # fmt: skip
+    return _finish(staged, count, sorted_ids, outputs, composite_state)
+
+
+def _finish(staged: _Staged, count: int, sorted_ids: torch.Tensor, outputs: tuple,
+            composite_state: _TileState | None) -> tuple[tuple, _Saved]:  # fmt: skip
+    """:func:`_render`'s result from the stage, the binning's count and sorted ids, and the compositing's outputs
+    (:func:`_composite_outputs`) and state."""
+    settings = staged.binning.settings
+    B, H, W = staged.binning.num_cameras, settings.height, settings.width
+    N = staged.splats.shape[0] // B
     color, depth, alpha, state, last = outputs
-    H, W = settings.height, settings.width
     depth = depth.view(B, H, W, 1) if settings.render_depth else None
-    outputs = (color.view(B, H, W, 3), depth, alpha.view(B, H, W, 1), radii.view(B, N, 2), count)
-    return outputs, _Saved(colors_or_black, cameras, splats, visible, radii, ranges, sorted_ids, state, last,
-                           composite, composite_state)
+    outputs = (color.view(B, H, W, 3), depth, alpha.view(B, H, W, 1), staged.radii.view(B, N, 2), count)
+    return outputs, _Saved(staged.colors_or_black, staged.cameras, staged.splats, staged.visible, staged.radii,
+                           staged.ranges, sorted_ids, state, last, staged.composite, composite_state)
 
 
 class _Rasterize(torch.autograd.Function):
@@ -1115,10 +1164,8 @@ def _bin_and_composite(binning: _Binning, ranges: torch.Tensor, colors_or_black:
     guess = None if speculation_shape is None else _speculation(speculation_shape, max_bytes)
     outputs = None
     if guess is not None:
-        sorted_ids, positions, read = _bin(binning, guess.capacity, guess.key_dtype, guess.end_bit, ranges, wdev,
-                                           stage=True, positions=composite.uses_positions)
-        outputs = _composite_outputs(binning.num_cameras, settings, splats)
-        state = composite.forward(binning, ranges, colors_or_black, sorted_ids, positions, outputs, wdev)
+        sorted_ids, outputs, state, read = _bin_and_composite_guessed(binning, ranges, colors_or_black, composite,
+                                                                      guess, stage_host_values, wdev)  # fmt: skip
     else:
         no_keys, no_values = (_zero_length(splats.device, dtype, ()) for dtype in (torch.uint32, torch.int32))
         _emit(binning, 0, no_keys, no_values, wdev)  # only publishes the key layout
@@ -1140,6 +1187,20 @@ def _bin_and_composite(binning: _Binning, ranges: torch.Tensor, colors_or_black:
     return count, sorted_ids, outputs, state
 
 
+def _bin_and_composite_guessed(binning: _Binning, ranges: torch.Tensor, colors_or_black: torch.Tensor,
+                               composite: _BlockComposite | _TileComposite, guess: _Speculation, stage,
+                               wdev) -> tuple[torch.Tensor, tuple, _TileState | None, object]:  # fmt: skip
+    """The speculative half of :func:`_bin_and_composite`: bin into the ``guess``'s capacity, stage the host read
+    with ``stage`` (:func:`~codecsplat_warp.device.stage_host_values` or a
+    :meth:`~codecsplat_warp.device.PinnedRead.stage`) and composite, all before the read. Returns the sorted row ids
+    ``[capacity]``, the outputs of :func:`_composite_outputs`, the layout's state and the staged read."""
+    sorted_ids, positions, read = _bin(binning, guess.capacity, guess.key_dtype, guess.end_bit, ranges, wdev,
+                                       stage=stage, positions=composite.uses_positions)
+    outputs = _composite_outputs(binning.num_cameras, binning.settings, binning.splats)
+    state = composite.forward(binning, ranges, colors_or_black, sorted_ids, positions, outputs, wdev)
+    return sorted_ids, outputs, state, read
+
+
 def _read_span(binning: _Binning) -> tuple[int, int]:
     """Where in ``binning.ints`` the host read starts and how many values it takes: the last inclusive offset (the
     intersection count), then the first :data:`~codecsplat_warp.kernels.raster_tiles.HOST_FLAGS` flags."""
@@ -1159,16 +1220,16 @@ def _read_binning(read, max_bytes: int) -> tuple[int, SortKey]:
 
 
 def _bin(binning: _Binning, capacity: int, key_dtype: torch.dtype, end_bit: int, ranges: torch.Tensor, wdev,
-         stage: bool = False, positions: bool = False) -> tuple[torch.Tensor, torch.Tensor | None, object]:
+         stage=None, positions: bool = False) -> tuple[torch.Tensor, torch.Tensor | None, object]:
     """Emit up to ``capacity`` intersections with keys of ``key_dtype``, sort them by key bits ``[0, end_bit)`` and
     fill the per-tile ranges ``[B*tiles, 2]`` (int32, zero on entry). Returns the sorted row ids ``[capacity]``
     (int32; from the count on, padding); with ``positions`` the position at which each sorted intersection was
     emitted ``[capacity]`` (int32; the sort carries the positions and the row ids are gathered from them), else
-    None; and with ``stage`` the host read staged after the emit launch (which publishes the key layout), else
-    None."""
+    None; and with ``stage`` (a function with :func:`~codecsplat_warp.device.stage_host_values`' arguments) the host
+    read staged by it after the emit launch (which publishes the key layout), else None."""
     keys, values = _sort_buffers(binning.ints, capacity, key_dtype)
     _emit(binning, capacity, keys, values, wdev)
-    read = stage_host_values(binning.ints, wdev, *_read_span(binning)) if stage else None
+    read = None if stage is None else stage(binning.ints, wdev, *_read_span(binning))
     emitted_rows = None
     if positions:
         emitted_rows = values[:capacity].clone()
@@ -1193,3 +1254,171 @@ def _empty_render(means, viewmats, background, settings: _Settings):
     radii = torch.zeros(B, means.shape[0], 2, dtype=torch.int32, device=means.device)
     depth = zeros.clone() if settings.render_depth else None
     return color, depth, zeros, RasterMeta(radii, 0, settings.tile_size)
+
+
+# --------------------------------------------------------------------------------------------------
+# Forward graphs: a CUDA call's stages 1 to 5 replayed from a CUDA graph
+GRAPH_MAX_INTERSECTIONS = 1 << 22
+"""A CUDA call replays its forward from a graph (:class:`_ForwardGraph`) only while its guessed intersection capacity
+is at most this: such calls are bound by the host's launches (131,072 Gaussians into 256x256 take 0.5 ms of GPU time
+and 1.7 ms of the host's, H200); larger ones by the GPU, where a graph's capacity headroom would only sort more."""
+
+GRAPH_HEADROOM = 1 / 4
+"""A graph is captured with this fraction more capacity than the call's guess, so that counts that drift up a little
+(an optimisation's steps) do not capture it again; a guess that outgrows it, or shrinks to under half of it, does."""
+
+MAX_FORWARD_GRAPHS = 4
+"""Forward graphs a thread keeps (the least recently used goes first); each holds its call's buffers."""
+
+GRAPHS_VARIABLE = "CODECSPLAT_RASTER_GRAPHS"
+"""Environment variable: ``0`` turns forward graphs off by default (see :func:`forward_graphs`)."""
+
+_graph_state = threading.local()
+"""This thread's forward graphs: ``enabled`` (:func:`forward_graphs`), ``graphs`` (key -> :class:`_ForwardGraph`,
+least recently used first) and ``failed`` (keys whose capture failed: they stay eager)."""
+
+
+@contextlib.contextmanager
+def forward_graphs(enabled: bool) -> Iterator[None]:
+    """Let the CUDA calls this thread makes inside the block replay their forward from CUDA graphs, or not. By default
+    they do, unless ``$CODECSPLAT_RASTER_GRAPHS`` is ``0``.
+
+    A call of a shape, settings and dtypes seen before (whose sort the previous call sized, see :class:`_Speculation`)
+    and with at most :data:`GRAPH_MAX_INTERSECTIONS` guessed intersections is captured once as a graph (cameras,
+    projection, scan, emission, sort and compositing, up to the host read) and replayed from then on: its inputs are
+    copied into the graph's, and its outputs and the backward's state copied out, so nothing a caller holds aliases
+    the graph. The results are those of the eager launches, bit for bit. A graph keeps its call's buffers (on the
+    order of the call's own memory) while the thread keeps it (:data:`MAX_FORWARD_GRAPHS`). A capture that fails
+    warns once and leaves that call shape eager. Calls made while the current stream is being captured stay eager."""
+    previous = _graphs_enabled()
+    _graph_state.enabled = bool(enabled)
+    try:
+        yield
+    finally:
+        _graph_state.enabled = previous
+
+
+def _graphs_enabled() -> bool:
+    enabled = getattr(_graph_state, "enabled", None)
+    if enabled is None:
+        enabled = _graph_state.enabled = os.environ.get(GRAPHS_VARIABLE, "1").strip() != "0"
+    return enabled
+
+
+def _thread_graphs() -> tuple[collections.OrderedDict, set]:
+    if not hasattr(_graph_state, "graphs"):
+        _graph_state.graphs, _graph_state.failed = collections.OrderedDict(), set()
+    return _graph_state.graphs, _graph_state.failed
+
+
+class _ForwardGraph:
+    """One call's :func:`_stage` and speculative binning and compositing (:func:`_bin_and_composite_guessed`, with
+    the capacity ``guess``) captured as a CUDA graph on static copies of the call's tensor ``inputs`` (the order of
+    :func:`_render`'s, None where absent), its host read staged into a :class:`~codecsplat_warp.device.PinnedRead`
+    of its own. :meth:`replay` copies new inputs in and replays; the results stay in the graph's memory."""
+
+    def __init__(self, inputs: tuple, settings: _Settings, guess: _Speculation):
+        device = inputs[0].device
+        self.settings, self.guess = settings, guess
+        self.inputs = [None if t is None else t.clone() for t in inputs]
+        self.present = [t for t in self.inputs if t is not None]
+        self.read = PinnedRead(_read_span_count())
+        self._launch()  # warm-up: loads the kernels' modules and sizes Warp's sort scratch for the capacity
+        self.graph = torch.cuda.CUDAGraph()
+        with capture_guard(device), torch.cuda.graph(self.graph, capture_error_mode="thread_local"):
+            with warp_capture(device) as self.warp_record:
+                self.launched = self._launch()
+
+    def _launch(self) -> tuple[_Staged, torch.Tensor, tuple]:
+        with warp_scope(self.inputs[0].device) as wdev:
+            staged = _stage(*self.inputs, self.settings, wdev)
+            sorted_ids, outputs, _, _ = _bin_and_composite_guessed(
+                staged.binning, staged.ranges, staged.colors_or_black, staged.composite, self.guess, self.read.stage,
+                wdev,
+            )  # fmt: skip
+        return staged, sorted_ids, outputs
+
+    def serves(self, guess: _Speculation) -> bool:
+        """Whether this graph's capacity and key suit a call with ``guess`` (neither too small nor twice too large)."""
+        mine = self.guess
+        return (guess.key_dtype == mine.key_dtype and guess.end_bit <= mine.end_bit
+                and guess.capacity <= mine.capacity <= 2 * guess.capacity)  # fmt: skip
+
+    def replay(self, inputs: tuple) -> tuple[_Staged, torch.Tensor, tuple]:
+        """Copy ``inputs`` (shaped as the captured ones) into the graph's and replay it; returns the graph's stage,
+        sorted ids ``[capacity]`` and outputs."""
+        torch._foreach_copy_(self.present, [t for t in inputs if t is not None])
+        self.graph.replay()
+        return self.launched
+
+
+def _read_span_count() -> int:
+    """How many values :func:`_read_span` takes."""
+    return 1 + raster_tiles.HOST_FLAGS
+
+
+def _graphed_render(inputs: tuple, settings: _Settings, shape: tuple, max_bytes: int) -> tuple[tuple, _Saved] | None:
+    """:func:`_render` of a CUDA call replayed from a :class:`_ForwardGraph` (captured here when none serves the
+    call yet), or None when the call is not for a graph (see :func:`forward_graphs`) or the replay's guess did not
+    cover its intersections (the caller then renders eagerly). Raises as :func:`_read_binning` does."""
+    if not _graphs_enabled() or torch.cuda.is_current_stream_capturing():
+        return None
+    guess = _speculation(shape, max_bytes)
+    if guess is None or guess.capacity > GRAPH_MAX_INTERSECTIONS:
+        return None
+    device = shape[0]
+    index = torch.cuda.current_device() if device.index is None else device.index
+    stream = torch._C._cuda_getCurrentRawStream(index)
+    means, colors, background, viewmats, Ks, leave_out = (inputs[i] for i in (0, 4, 5, 6, 7, 8))
+    key = (shape, settings, stream, means.dtype, colors.shape, background is None, viewmats.dtype, Ks.dtype,
+           leave_out.shape[0])  # with the shape and settings, every input's shape and dtype  # fmt: skip
+    graphs, failed = _thread_graphs()
+    graph = graphs.get(key)
+    if graph is not None and not graph.serves(guess):
+        del graphs[key]
+        graph = None
+    if graph is None:
+        if key in failed:
+            return None
+        while len(graphs) >= MAX_FORWARD_GRAPHS:
+            graphs.popitem(last=False)
+        affordable = max_bytes // _bytes_per_intersection(guess.key_dtype)
+        roomy = guess._replace(capacity=min(guess.capacity + int(guess.capacity * GRAPH_HEADROOM), affordable))
+        try:
+            graph = _ForwardGraph(inputs, settings, roomy)
+        except Exception as error:  # noqa: BLE001 -- any failure to capture leaves the call shape eager
+            failed.add(key)
+            warnings.warn(f"rasterize: capturing the forward of {shape[1]} camera(s) x {shape[2]:,} Gaussians as a "
+                          f"CUDA graph failed; that call shape runs eagerly ({type(error).__name__}: {error})",
+                          RuntimeWarning, stacklevel=2)  # fmt: skip
+            return None
+        graphs[key] = graph
+    else:
+        graphs.move_to_end(key)
+    staged, sorted_ids, outputs = graph.replay(inputs)
+    staged, sorted_ids, outputs = _copy_out(staged, sorted_ids, outputs, inputs)  # queued before the host waits
+    count, sort_key = _read_binning(graph.read, max_bytes)
+    _remember(shape, count, sort_key)
+    if not graph.guess.covers(count, sort_key):
+        return None
+    return _finish(staged, count, sorted_ids[:count], outputs, None)
+
+
+def _copy_out(staged: _Staged, sorted_ids: torch.Tensor, outputs: tuple,
+              inputs: tuple) -> tuple[_Staged, torch.Tensor, tuple]:  # fmt: skip
+    """Copies of a replay's results that :func:`_finish` and the backward keep (the next replay overwrites the
+    graph's): one op per dtype (``x * 1``, exact), queued behind the replay. ``inputs`` are the call's own (its
+    background and leave-out ranges are kept, as the eager path keeps them)."""
+    color, depth, alpha, state, last = outputs
+    cameras, visible = staged.cameras, staged.visible
+    color, depth, alpha, state, splats, viewmats, Ks, origin = torch._foreach_mul(
+        [color, depth, alpha, state, staged.splats, cameras.viewmats, cameras.Ks, cameras.origin], 1
+    )
+    last, radii, ranges, sorted_ids, rows = torch._foreach_mul(
+        [last, staged.radii, staged.ranges, sorted_ids, visible.rows], 1
+    )
+    colors_or_black = staged.colors_or_black if inputs[5] is None else inputs[5]
+    copied = _Staged(colors_or_black, _Cameras(viewmats, Ks, origin, inputs[8]), splats,
+                     _Visible(visible.count.clone(), rows), radii, ranges, staged.binning,
+                     staged.composite)  # fmt: skip
+    return copied, sorted_ids, (color, depth, alpha, state, last)

@@ -1,26 +1,17 @@
 """CUDA graphs of a run: the decoder (:class:`GraphedDecoder`) and the loss's fixed and perceptual terms,
-captured once per run and replayed every step; a capture that fails falls back to eager, with a warning.
-
-Every capture runs inside :func:`capture_guard`. A capture records the stream's work and forbids the CUDA calls that
-would act on the device at once; freeing a CUDA graph (``cuGraphExecDestroy``) is one of them. Graphs of an earlier
-run that only Python's cyclic garbage collector frees (a run's objects refer to each other) were freed when the
-collector happened to run in the middle of a later capture: the capture was invalidated
-(``cudaErrorStreamCaptureInvalidated``; seen in a long process, ``pytest -m cuda`` run whole), and torch's CUDA
-generator, left in its capturing state, refused every random draw after it ("Offset increment outside graph capture").
-The guard collects the garbage before a capture and holds the collector off during it, and after a capture that
-fails for any reason it takes the generator out of its capturing state and restores its state.
+captured once per run and replayed every step; a capture that fails falls back to eager, with a warning. Every
+capture runs inside :func:`~codecsplat_warp.device.capture_guard`.
 """
 
 from __future__ import annotations
 
-import contextlib
-import gc
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 
 import torch
 
 from ...checks import validation
+from ...device import capture_guard
 from ...gaussians import Gaussians
 from .loss import ContextLoss, Decoded, PerceptualDistance, RDOTarget, decode_variables
 from .presets import RDOConfig
@@ -35,39 +26,6 @@ def uses_cuda_graphs(config: RDOConfig, device: torch.device) -> bool:
     ``config.cuda_graphs``, and with at least :data:`GRAPH_MIN_STEPS` steps (or a time budget alone)."""
     long_enough = config.steps is None or config.steps >= GRAPH_MIN_STEPS
     return config.cuda_graphs and device.type == "cuda" and long_enough
-
-
-@contextlib.contextmanager
-def capture_guard(device: torch.device) -> Iterator[None]:
-    """Run a CUDA graph capture on ``device`` (its body) safely in a long process: Python's garbage is collected
-    first and the collector is held off until the capture ends (so no earlier graph is freed mid-capture, see the
-    module docstring); when the body raises, torch's CUDA generator of ``device`` is taken out of the capturing
-    state a failed capture leaves it in and given back the state it had before, and the error propagates."""
-    gc.collect()
-    collecting = gc.isenabled()
-    gc.disable()
-    rng_state = torch.cuda.get_rng_state(device)
-    try:
-        yield
-    except BaseException:
-        _end_generator_capture(device)
-        torch.cuda.set_rng_state(rng_state, device)
-        raise
-    finally:
-        if collecting:
-            gc.enable()
-
-
-def _end_generator_capture(device: torch.device) -> None:
-    """Take torch's CUDA generator of ``device`` out of the capturing state that a capture which failed before its
-    end leaves it in (its prologue ran, its epilogue did not): one trivial capture runs both."""
-    with torch.cuda.device(device):
-        torch.cuda.synchronize(device)
-        scratch = torch.zeros(1, device=device)
-        graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph):
-            scratch.add_(1.0)
-        del graph
 
 
 def perceptual_distance(network: torch.nn.Module, target_units: list[torch.Tensor], images: torch.Tensor,
