@@ -406,6 +406,18 @@ def test_zero_quaternion_and_bad_arguments_raise_input_error():
         rasterize(*scene, 8, 8, near=0.0)
 
 
+def test_cached_settings_still_raise_for_every_bad_call():
+    """A call's settings are cached per distinct arguments: a bad argument raises on every call, ``True`` is not
+    taken for a width of 1 cached before, and an unhashable argument is checked without the cache."""
+    scene = make_scene(4, 8, 8)
+    rasterize(*scene, 1, 8)
+    for _ in range(2):
+        with pytest.raises(InputError, match="width"):
+            rasterize(*scene, True, 8)
+        with pytest.raises(InputError, match="mode"):
+            rasterize(*scene, 8, 8, mode=["classic"])
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_leave_out_renders_each_camera_as_if_its_range_were_absent(device):
     """Camera b with ``leave_out[b] = (s, e)`` renders (and differentiates) like a call without Gaussians s..e-1:
