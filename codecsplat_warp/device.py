@@ -336,7 +336,6 @@ def _end_generator_capture(device: torch.device) -> None:
         del graph
 
 
-
 @contextlib.contextmanager
 def warp_capture(device: torch.device) -> Iterator[list]:
     """Tell Warp that torch's current stream of the CUDA ``device`` is being captured (by a ``torch.cuda.graph``

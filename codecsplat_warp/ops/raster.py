@@ -1326,7 +1326,7 @@ class _ForwardGraph:
         self._launch()  # warm-up: loads the kernels' modules and sizes Warp's sort scratch for the capacity
         self.graph = torch.cuda.CUDAGraph()
         with capture_guard(device), torch.cuda.graph(self.graph, capture_error_mode="thread_local"):
-            with warp_capture(device) as self.warp_record:
+            with warp_capture(device) as self.warp_record:  # kept as long as the graph
                 self.launched = self._launch()
 
     def _launch(self) -> tuple[_Staged, torch.Tensor, tuple]:
