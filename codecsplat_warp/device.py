@@ -465,12 +465,7 @@ def stage_host_values(tensor: torch.Tensor, wdev, start: int = 0, count: int | N
         InputError: not a contiguous 1-D int64 tensor, or the range is not inside it.
         RuntimeError: the copy could not be queued.
     """
-    if tensor.dtype != torch.int64 or tensor.dim() != 1 or not tensor.is_contiguous():
-        raise InputError("stage_host_values reads a contiguous 1-D int64 tensor")
-    length = tensor.shape[0]
-    count = length - start if count is None else count
-    if not (0 <= start and 0 <= count and start + count <= length):
-        raise InputError(f"stage_host_values: values [{start}, {start + count}) are not inside a tensor of {length}")
+    count = _read_count("stage_host_values", tensor, start, count)
     if not tensor.is_cuda:
         return HostValues(tensor[start : start + count].tolist())
     if not hasattr(_pinned, "events"):
@@ -483,16 +478,25 @@ def stage_host_values(tensor: torch.Tensor, wdev, start: int = 0, count: int | N
     event = _pinned.events.get(wdev.ordinal)
     if event is None:
         event = _pinned.events[wdev.ordinal] = wp.Event(wdev)
-    _queue_read(tensor, wdev, start, count, _pinned.address, event)
+    _queue_copy(tensor, wdev, start, count, _pinned.address)
+    warp_context.runtime.core.wp_cuda_event_record(event.cuda_event, wdev.stream.cuda_stream, False)
     _pinned.generation += 1
     return HostValues(None, _pinned.address, count, event, _pinned.generation)
 
 
-def _queue_read(tensor: torch.Tensor, wdev, start: int, count: int, address: int, event) -> None:
-    """Queue the copy of ``count`` int64 values of the CUDA ``tensor`` from ``start`` on to the pinned host
-    ``address``, and the Warp ``event`` after it, on Warp's current stream of ``wdev``."""
-    _queue_copy(tensor, wdev, start, count, address)
-    warp_context.runtime.core.wp_cuda_event_record(event.cuda_event, wdev.stream.cuda_stream, False)
+def _read_count(reader: str, tensor: torch.Tensor, start: int, count: int | None) -> int:
+    """How many values ``reader`` reads from ``tensor`` at ``start`` (``count``; None: all from ``start``).
+
+    Raises:
+        InputError: not a contiguous 1-D int64 tensor, or the range is not inside it.
+    """
+    if tensor.dtype != torch.int64 or tensor.dim() != 1 or not tensor.is_contiguous():
+        raise InputError(f"{reader} reads a contiguous 1-D int64 tensor")
+    length = tensor.shape[0]
+    count = length - start if count is None else count
+    if not (0 <= start and 0 <= count and start + count <= length):
+        raise InputError(f"{reader}: values [{start}, {start + count}) are not inside a tensor of {length}")
+    return count
 
 
 def _queue_copy(tensor: torch.Tensor, wdev, start: int, count: int, address: int) -> None:
@@ -525,10 +529,9 @@ class PinnedRead:
         Raises:
             InputError: another count, or not a contiguous 1-D int64 tensor holding the range.
         """
-        if count != self.count or tensor.dtype != torch.int64 or tensor.dim() != 1 or not tensor.is_contiguous() \
-                or not 0 <= start <= tensor.shape[0] - count:
-            raise InputError(f"a PinnedRead of {self.count} values cannot read [{start}, {start + count}) of a "
-                             f"{tuple(tensor.shape)} {tensor.dtype} tensor")  # fmt: skip
+        if count != self.count:
+            raise InputError(f"a PinnedRead of {self.count} values cannot read {count}")
+        _read_count("PinnedRead", tensor, start, count)
         _queue_copy(tensor, wdev, start, count, self.address)
         self.event.record(torch.cuda.current_stream(tensor.device))
         return self

@@ -1201,10 +1201,15 @@ def _bin_and_composite_guessed(binning: _Binning, ranges: torch.Tensor, colors_o
     return sorted_ids, outputs, state, read
 
 
+READ_VALUES = 1 + raster_tiles.HOST_FLAGS
+"""Values of a call's host read: the intersection count, then the first
+:data:`~codecsplat_warp.kernels.raster_tiles.HOST_FLAGS` flags."""
+
+
 def _read_span(binning: _Binning) -> tuple[int, int]:
-    """Where in ``binning.ints`` the host read starts and how many values it takes: the last inclusive offset (the
-    intersection count), then the first :data:`~codecsplat_warp.kernels.raster_tiles.HOST_FLAGS` flags."""
-    return 2 * binning.splats.shape[0] - 1, 1 + raster_tiles.HOST_FLAGS
+    """Where in ``binning.ints`` the host read starts and how many values it takes (:data:`READ_VALUES`): the last
+    inclusive offset (the intersection count), then the flags."""
+    return 2 * binning.splats.shape[0] - 1, READ_VALUES
 
 
 def _read_binning(read, max_bytes: int) -> tuple[int, SortKey]:
@@ -1322,7 +1327,7 @@ class _ForwardGraph:
         self.settings, self.guess = settings, guess
         self.inputs = [None if t is None else t.clone() for t in inputs]
         self.present = [t for t in self.inputs if t is not None]
-        self.read = PinnedRead(_read_span_count())
+        self.read = PinnedRead(READ_VALUES)
         self._launch()  # warm-up: loads the kernels' modules and sizes Warp's sort scratch for the capacity
         self.graph = torch.cuda.CUDAGraph()
         with capture_guard(device), torch.cuda.graph(self.graph, capture_error_mode="thread_local"):
@@ -1352,11 +1357,6 @@ class _ForwardGraph:
         return self.launched
 
 
-def _read_span_count() -> int:
-    """How many values :func:`_read_span` takes."""
-    return 1 + raster_tiles.HOST_FLAGS
-
-
 def _graphed_render(inputs: tuple, settings: _Settings, shape: tuple, max_bytes: int) -> tuple[tuple, _Saved] | None:
     """:func:`_render` of a CUDA call replayed from a :class:`_ForwardGraph` (captured here when none serves the
     call yet), or None when the call is not for a graph (see :func:`forward_graphs`) or the replay's guess did not
@@ -1366,35 +1366,13 @@ def _graphed_render(inputs: tuple, settings: _Settings, shape: tuple, max_bytes:
     guess = _speculation(shape, max_bytes)
     if guess is None or guess.capacity > GRAPH_MAX_INTERSECTIONS:
         return None
-    device = shape[0]
-    index = torch.cuda.current_device() if device.index is None else device.index
-    stream = torch._C._cuda_getCurrentRawStream(index)
     means, colors, background, viewmats, Ks, leave_out = (inputs[i] for i in (0, 4, 5, 6, 7, 8))
+    stream = torch._C._cuda_getCurrentRawStream(means.device.index)  # a CUDA tensor's device has its index
     key = (shape, settings, stream, means.dtype, colors.shape, background is None, viewmats.dtype, Ks.dtype,
            leave_out.shape[0])  # with the shape and settings, every input's shape and dtype  # fmt: skip
-    graphs, failed = _thread_graphs()
-    graph = graphs.get(key)
-    if graph is not None and not graph.serves(guess):
-        del graphs[key]
-        graph = None
+    graph = _graph_for(key, guess, inputs, settings, max_bytes)
     if graph is None:
-        if key in failed:
-            return None
-        while len(graphs) >= MAX_FORWARD_GRAPHS:
-            graphs.popitem(last=False)
-        affordable = max_bytes // _bytes_per_intersection(guess.key_dtype)
-        roomy = guess._replace(capacity=min(guess.capacity + int(guess.capacity * GRAPH_HEADROOM), affordable))
-        try:
-            graph = _ForwardGraph(inputs, settings, roomy)
-        except Exception as error:  # noqa: BLE001 -- any failure to capture leaves the call shape eager
-            failed.add(key)
-            warnings.warn(f"rasterize: capturing the forward of {shape[1]} camera(s) x {shape[2]:,} Gaussians as a "
-                          f"CUDA graph failed; that call shape runs eagerly ({type(error).__name__}: {error})",
-                          RuntimeWarning, stacklevel=2)  # fmt: skip
-            return None
-        graphs[key] = graph
-    else:
-        graphs.move_to_end(key)
+        return None
     staged, sorted_ids, outputs = graph.replay(inputs)
     staged, sorted_ids, outputs = _copy_out(staged, sorted_ids, outputs, inputs)  # queued before the host waits
     count, sort_key = _read_binning(graph.read, max_bytes)
@@ -1402,6 +1380,37 @@ def _graphed_render(inputs: tuple, settings: _Settings, shape: tuple, max_bytes:
     if not graph.guess.covers(count, sort_key):
         return None
     return _finish(staged, count, sorted_ids[:count], outputs, None)
+
+
+def _graph_for(key: tuple, guess: _Speculation, inputs: tuple, settings: _Settings,
+               max_bytes: int) -> _ForwardGraph | None:  # fmt: skip
+    """This thread's graph under ``key`` when it serves ``guess`` (:meth:`_ForwardGraph.serves`), else one captured
+    now from ``inputs`` with :data:`GRAPH_HEADROOM` more capacity than the guess (within the sort budget
+    ``max_bytes``), the least recently used graph going first when the thread keeps :data:`MAX_FORWARD_GRAPHS`;
+    None for a key whose capture failed (warned once, when it failed)."""
+    graphs, failed = _thread_graphs()
+    graph = graphs.get(key)
+    if graph is not None and graph.serves(guess):
+        graphs.move_to_end(key)
+        return graph
+    graphs.pop(key, None)
+    if key in failed:
+        return None
+    while len(graphs) >= MAX_FORWARD_GRAPHS:
+        graphs.popitem(last=False)
+    affordable = max_bytes // _bytes_per_intersection(guess.key_dtype)
+    roomy = guess._replace(capacity=min(guess.capacity + int(guess.capacity * GRAPH_HEADROOM), affordable))
+    try:
+        graph = _ForwardGraph(inputs, settings, roomy)
+    except Exception as error:  # noqa: BLE001 -- any failure to capture leaves the call shape eager
+        failed.add(key)
+        cameras, gaussians = key[0][1], key[0][2]
+        warnings.warn(f"rasterize: capturing the forward of {cameras} camera(s) x {gaussians:,} Gaussians as a "
+                      f"CUDA graph failed; that call shape runs eagerly ({type(error).__name__}: {error})",
+                      RuntimeWarning, stacklevel=2)  # fmt: skip
+        return None
+    graphs[key] = graph
+    return graph
 
 
 def _copy_out(staged: _Staged, sorted_ids: torch.Tensor, outputs: tuple,
