@@ -298,18 +298,17 @@ def available_devices() -> list[torch.device]:
 
 @contextlib.contextmanager
 def capture_guard(device: torch.device) -> Iterator[None]:
-    """Run a CUDA graph capture on ``device`` (its body) safely in a long process: Python's garbage is collected
-    first and the collector is held off until the capture ends; when the body raises, torch's CUDA generator of
-    ``device`` is taken out of the capturing state a failed capture leaves it in and given back the state it had
-    before, and the error propagates.
+    """Run a CUDA graph capture on ``device`` (its body) safely in a long process: Python's garbage collector is held
+    off until the capture ends; when the body raises, torch's CUDA generator of ``device`` is taken out of the
+    capturing state a failed capture leaves it in and given back the state it had before, and the error propagates.
 
     Why: a capture records the stream's work and forbids the CUDA calls that would act on the device at once;
     freeing a CUDA graph (``cuGraphExecDestroy``) is one of them. Graphs that only Python's cyclic garbage
     collector frees (objects that refer to each other) were freed when the collector happened to run in the middle
     of a later capture: the capture was invalidated (``cudaErrorStreamCaptureInvalidated``; seen in a long process,
     ``pytest -m cuda`` run whole), and torch's CUDA generator, left in its capturing state, refused every random
-    draw after it ("Offset increment outside graph capture")."""
-    gc.collect()
+    draw after it ("Offset increment outside graph capture"). Holding the collector off is enough: no collection
+    runs first, which took tens of milliseconds in a process holding a model, at every capture."""
     collecting = gc.isenabled()
     gc.disable()
     rng_state = torch.cuda.get_rng_state(device)
@@ -322,6 +321,29 @@ def capture_guard(device: torch.device) -> Iterator[None]:
     finally:
         if collecting:
             gc.enable()
+
+
+@contextlib.contextmanager
+def cuda_graph_capture(graph: torch.cuda.CUDAGraph, device: torch.device) -> Iterator[None]:
+    """Capture the work the block queues on ``device`` into ``graph`` (errors of other threads' CUDA calls not
+    counted, ``capture_error_mode="thread_local"``), inside :func:`capture_guard`. The block runs on a side stream
+    that first waits for the current stream's work; a replay runs on the stream current at the time.
+
+    Unlike ``torch.cuda.graph``, it neither synchronises the device nor empties torch's memory caches before the
+    capture: a capture that an optimisation's step makes (a rasterizer's forward graph, when the counts outgrow it)
+    then costs about what its launches cost, and the allocations after it are not sent back to ``cudaMalloc``. When
+    the block raises, its error propagates (not the one ending the broken capture gives)."""
+    side = torch.cuda.Stream(device=device)
+    side.wait_stream(torch.cuda.current_stream(device))
+    with capture_guard(device), torch.cuda.stream(side):
+        graph.capture_begin(capture_error_mode="thread_local")
+        try:
+            yield
+        except BaseException:
+            with contextlib.suppress(Exception):
+                graph.capture_end()
+            raise
+        graph.capture_end()
 
 
 def _end_generator_capture(device: torch.device) -> None:

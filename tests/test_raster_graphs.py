@@ -4,6 +4,7 @@ hold or a capture fails."""
 
 from __future__ import annotations
 
+import gc
 import warnings
 
 import pytest
@@ -150,6 +151,38 @@ def test_a_failed_capture_warns_once_and_stays_eager(fresh, monkeypatch):
     assert_same(got, want)
     assert not raster_ops._thread_graphs()[0] and launches[0] == 2
     assert torch.rand(4, device="cuda").shape == (4,)
+
+
+@pytest.mark.cuda
+@requires_cuda
+def test_a_capture_neither_synchronises_nor_collects_nor_empties_the_caches(fresh, monkeypatch):
+    """Capturing a graph (the second call of a shape) calls none of ``torch.cuda.synchronize``, ``gc.collect``,
+    ``torch.cuda.empty_cache`` and torch's host cache emptying, and keeps the memory torch had reserved.
+
+    Catches: captures through ``torch.cuda.graph`` (it synchronises and empties the caches) or a guard that
+    collects Python's garbage first. In ``bench rdo`` of the held-out RE10K samples (H200) such a capture took
+    223 ms (median of 55) against 3 ms, and a ``medium`` encode 1.14 s against 0.43 s."""
+    scene = cuda_scene(8)
+    render(scene)  # eager: the first call of the shape
+    reserved = torch.cuda.memory_reserved()
+    called = []
+    capture = raster_ops._ForwardGraph.__init__
+
+    def spied_capture(self, *args):
+        with pytest.MonkeyPatch.context() as spies:
+            for owner, name in ((torch.cuda, "synchronize"), (gc, "collect"), (torch.cuda, "empty_cache"),
+                                (torch._C, "_host_emptyCache")):  # fmt: skip
+                spies.setattr(owner, name, lambda *a, name=name, **k: called.append(name), raising=False)
+            capture(self, *args)
+
+    monkeypatch.setattr(raster_ops._ForwardGraph, "__init__", spied_capture)
+    got, _ = render(scene)
+    assert len(raster_ops._thread_graphs()[0]) == 1  # captured
+    assert called == []
+    assert torch.cuda.memory_reserved() >= reserved
+    with forward_graphs(False):
+        want, _ = render(scene)
+    assert_same(got, want)
 
 
 def test_forward_graphs_are_a_setting_of_the_thread_with_an_environment_default(monkeypatch):

@@ -51,7 +51,7 @@ import torch
 
 from ..checks import FLOAT_DTYPES, check_finite, check_tensor, common_device, validation_enabled
 from ..device import (
-    PinnedRead, capture_guard, cpu_threads, launch, matrices, stage_host_values, vectors, warp_capture, warp_dtype,
+    PinnedRead, cpu_threads, cuda_graph_capture, launch, matrices, stage_host_values, vectors, warp_capture, warp_dtype,
     warp_scope,
 )  # fmt: skip
 from ..errors import InputError, RasterMemoryError
@@ -1330,7 +1330,7 @@ class _ForwardGraph:
         self.read = PinnedRead(READ_VALUES)
         self._launch()  # warm-up: loads the kernels' modules and sizes Warp's sort scratch for the capacity
         self.graph = torch.cuda.CUDAGraph()
-        with capture_guard(device), torch.cuda.graph(self.graph, capture_error_mode="thread_local"):
+        with cuda_graph_capture(self.graph, device):
             with warp_capture(device) as self.warp_record:  # kept as long as the graph
                 self.launched = self._launch()
 
