@@ -37,14 +37,8 @@ def perceptual_distance(network: torch.nn.Module, target_units: list[torch.Tenso
     distance = PerceptualDistance(network, target_units)
     if not graphed:
         return distance
-    try:
-        with torch.enable_grad(), validation(False), capture_guard(images.device):
-            sample = torch.rand_like(images, dtype=torch.float32).requires_grad_(True)
-            return torch.cuda.make_graphed_callables(distance, (sample,))
-    except RuntimeError as error:
-        warnings.warn(f"the RDO perceptual term runs without CUDA graphs: capturing it failed ({error})",
-                      RuntimeWarning, stacklevel=2)
-        return distance
+    sample = (torch.rand_like(images, dtype=torch.float32).requires_grad_(True),)
+    return _graphed_callable(distance, sample, "the RDO perceptual term")
 
 
 def context_loss(images: torch.Tensor, lam: float, config: RDOConfig, graphed: bool
@@ -59,17 +53,32 @@ def context_loss(images: torch.Tensor, lam: float, config: RDOConfig, graphed: b
         return loss
     V, _, H, W = images.shape
     views = 2 * V if config.cross_view_weight > 0 else V
+    sample = (torch.rand(views, 3, H, W, device=images.device).requires_grad_(True),
+              torch.rand((), device=images.device).requires_grad_(True))
+    if config.cross_view_weight > 0:
+        sample += (torch.rand(views, H, W, device=images.device).requires_grad_(True),)
+    return _graphed_callable(loss, sample, "the RDO loss")
+
+
+ACCUMULATE_GRAD_STREAM_WARNING = "The AccumulateGrad node's stream does not match"
+"""The start of torch's warning (since torch 2.10) that a gradient arrives on another stream than the one its leaf's
+accumulator was made on: ``torch.cuda.make_graphed_callables`` itself gives it once, warming the sample up on a side
+stream and capturing on another. Harmless there: the graphs hand the sample's gradients back, no accumulator runs."""
+
+
+def _graphed_callable(function: torch.nn.Module, sample: tuple[torch.Tensor, ...], what: str) -> Callable:
+    """``torch.cuda.make_graphed_callables(function, sample)`` (``sample``: CUDA tensors shaped as the calls'
+    arguments, requiring gradients), captured inside :func:`~codecsplat_warp.device.capture_guard` and without
+    :data:`ACCUMULATE_GRAD_STREAM_WARNING`; ``function`` itself when the capture fails, with a warning that says
+    ``what`` runs without CUDA graphs."""
     try:
-        with torch.enable_grad(), validation(False), capture_guard(images.device):
-            sample = (torch.rand(views, 3, H, W, device=images.device).requires_grad_(True),
-                      torch.rand((), device=images.device).requires_grad_(True))
-            if config.cross_view_weight > 0:
-                sample += (torch.rand(views, H, W, device=images.device).requires_grad_(True),)
-            return torch.cuda.make_graphed_callables(loss, sample)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=ACCUMULATE_GRAD_STREAM_WARNING, category=UserWarning)
+            with torch.enable_grad(), validation(False), capture_guard(sample[0].device):
+                return torch.cuda.make_graphed_callables(function, sample)
     except RuntimeError as error:
-        warnings.warn(f"the RDO loss runs without CUDA graphs: capturing it failed ({error})", RuntimeWarning,
-                      stacklevel=2)
-        return loss
+        warnings.warn(f"{what} runs without CUDA graphs: capturing it failed ({error})", RuntimeWarning, stacklevel=3)
+        return function
 
 
 class GraphedDecoder:
