@@ -360,10 +360,10 @@ def _end_generator_capture(device: torch.device) -> None:
 
 @contextlib.contextmanager
 def warp_capture(device: torch.device) -> Iterator[list]:
-    """Tell Warp that torch's current stream of the CUDA ``device`` is being captured (by a ``torch.cuda.graph``
-    entered before): inside the block Warp's launches keep their modules loaded for the graph and its temporary
-    buffers (e.g. its scan's) are freed when the graph is, not at once (which a capture forbids). Yields a list
-    that holds Warp's record of the capture once the block ends: keep it as long as the captured graph."""
+    """Tell Warp that torch's current stream of the CUDA ``device`` is being captured (by a capture entered before,
+    :func:`cuda_graph_capture`): inside the block Warp's launches keep their modules loaded for the graph and its
+    temporary buffers (e.g. its scan's) are freed when the graph is, not at once (which a capture forbids). Yields a
+    list that holds Warp's record of the capture once the block ends: keep it as long as the captured graph."""
     wdev = warp_device(device)
     stream = _warp_stream(wdev, torch._C._cuda_getCurrentRawStream(wdev.ordinal))
     wp.capture_begin(device=wdev, stream=stream, external=True)
